@@ -294,12 +294,13 @@ class UR5e(nn.Module):
             radii.append(r)
             frame_idx += [self.frame_names.index(prim.link)] * len(r)
             prim_idx += [k] * len(r)
-        self.register_buffer("sphere_local", torch.tensor(np.concatenate(centres), dtype=dtype))
-        self.register_buffer("sphere_radii", torch.tensor(np.concatenate(radii), dtype=dtype))
-        all_local = np.concatenate(centres)
+        all_local, all_radii = np.concatenate(centres), np.concatenate(radii)
         if any(a > b for a, b in zip(frame_idx, frame_idx[1:])):
             raise ValueError("urdf_path: list <link> elements in chain order (collision spheres are grouped by frame)")
-        self.register_buffer("sphere_local", torch.tensor(all_local, dtype=dtype))  # (S, 3)
+        self.register_buffer("sphere_local", torch.tensor(all_local, dtype=dtype))  # (S, 3) in link frames
+        self.register_buffer("sphere_radii", torch.tensor(all_radii, dtype=dtype))  # (S,)
+        self.register_buffer("sphere_frame", torch.tensor(frame_idx, dtype=torch.long))  # index in frame_names
+        self.register_buffer("sphere_primitive", torch.tensor(prim_idx, dtype=torch.long))  # index in primitives
         self._sphere_groups = [
             (f, frame_idx.index(f), len(frame_idx) - frame_idx[::-1].index(f)) for f in sorted(set(frame_idx))
         ]
@@ -322,8 +323,7 @@ class UR5e(nn.Module):
             raise ValueError(f"urdf_path: gripper collision geometry must sit on {self.GRIPPER_LINKS[0]!r}")
         gc = all_local[g]
         bound_centre = (gc.min(0) + gc.max(0)) / 2
-        bound_radius = float((np.linalg.norm(gc - bound_centre, axis=1) + np.concatenate(radii)[g]).max())
-        self.register_buffer("gripper_bound_local", torch.tensor(bound_centre, dtype=dtype))
+        bound_radius = float((np.linalg.norm(gc - bound_centre, axis=1) + all_radii[g]).max())
         self._gripper_bound_list = bound_centre.tolist()
         self.gripper_bound_radius = bound_radius
         self._gripper_frame = self.frame_names.index(self.GRIPPER_LINKS[0])
