@@ -52,6 +52,9 @@ def test_fk_matches_closed_form_dh(robot64):
     expected, _ = dh_tcp(q6.numpy())
     err = (robot64.fk(q3).numpy() - expected).__abs__().max()
     assert err < 1e-6, err
+    # the single-configuration path too
+    single = torch.stack([robot64.fk(q) for q in q3[:200]])
+    assert (single.numpy() - expected[:200]).__abs__().max() < 1e-6
 
 
 def test_tool_axis_points_down(robot64):
@@ -78,8 +81,9 @@ def test_fk_agrees_with_pytorch_kinematics_chain(robot64):
     assert (robot64.fk(q3) - robot64.reference_fk(q3)).abs().max() < 1e-6
 
 
-def test_fk_gradcheck(robot64):
-    q3 = random_q3(4, seed=4).requires_grad_(True)
+@pytest.mark.parametrize("n", [1, 4])  # the single-configuration path and the batched kernel
+def test_fk_gradcheck(robot64, n):
+    q3 = random_q3(n, seed=4).requires_grad_(True)
     assert torch.autograd.gradcheck(robot64.fk, (q3,))
     assert torch.autograd.gradcheck(lambda q: robot64.link_spheres(q)[0], (q3,))
 

@@ -174,6 +174,89 @@ def _dot(row, col):
     return acc
 
 
+class _Sym:
+    """A named value in a traced program; arithmetic on it records a line of code."""
+
+    def __init__(self, tracer: "_Tracer", name: str, negates: "_Sym | None" = None):
+        self.tracer, self.name, self.negates = tracer, name, negates
+
+    def _emit(self, expr: str, deps: tuple) -> "_Sym":
+        return self.tracer.emit(expr, deps)
+
+    @staticmethod
+    def _ref(x):
+        return x.name if isinstance(x, _Sym) else repr(float(x))
+
+    def __mul__(self, other):
+        return self._emit(f"{self.name} * {self._ref(other)}", (self, other))
+
+    __rmul__ = __mul__
+
+    def __add__(self, other):
+        return self._emit(f"{self.name} + {self._ref(other)}", (self, other))
+
+    __radd__ = __add__
+
+    def __neg__(self):
+        if self.negates is not None:  # -(-x) is x
+            return self.negates
+        out = self._emit(f"-{self.name}", (self,))
+        out.negates = self
+        return out
+
+    def unsqueeze(self, dim: int):
+        return self._emit(f"{self.name}.unsqueeze({dim})", (self,))
+
+
+class _Tracer:
+    """Records straight-line tensor code from the 0/+-1-folding algebra above.
+
+    The chain and sphere formulas are run once at construction on symbolic
+    inputs; the recorded lines become a plain Python function, so the hot path
+    runs only the ~100 tensor ops that remain, without re-deciding the folding
+    on every call (which cost ~2.5 ms of Python per call).
+    """
+
+    def __init__(self):
+        self.lines: list[tuple[str, str, set]] = []
+        self._seen: dict[str, _Sym] = {}  # common subexpressions
+
+    def input(self, name: str) -> _Sym:
+        return _Sym(self, name)
+
+    def emit(self, expr: str, deps: tuple) -> _Sym:
+        if expr in self._seen:
+            return self._seen[expr]
+        name = f"v{len(self.lines)}"
+        self.lines.append((name, expr, {d.name for d in deps if isinstance(d, _Sym)}))
+        self._seen[expr] = sym = _Sym(self, name)
+        return sym
+
+    def function(self, fname: str, args: list[str], outputs) -> "callable":
+        """Compile ``outputs`` (a nested tuple of _Sym / floats) into ``fname(*args)``."""
+
+        def render(o):
+            if isinstance(o, (tuple, list)):
+                return "(" + "".join(render(x) + ", " for x in o) + ")"
+            return o.name if isinstance(o, _Sym) else repr(float(o))
+
+        def names(o):
+            if isinstance(o, (tuple, list)):
+                return set().union(*[names(x) for x in o]) if o else set()
+            return {o.name} if isinstance(o, _Sym) else set()
+
+        needed, body = names(outputs), []
+        for name, expr, deps in reversed(self.lines):  # drop dead code
+            if name in needed:
+                body.append(f"    {name} = {expr}")
+                needed |= deps
+        src = f"def {fname}({', '.join(args)}):\n" + "\n".join(reversed(body)) + f"\n    return {render(outputs)}\n"
+        scope: dict = {}
+        exec(compile(src, f"<torchrl_silp.robot.{fname}>", "exec"), scope)
+        scope[fname].source = src
+        return scope[fname]
+
+
 def _stack_vec(v, n, like):
     return torch.stack([x if isinstance(x, torch.Tensor) else like.new_full((n,), x) for x in v], dim=-1)
 
@@ -221,6 +304,9 @@ class UR5e(nn.Module):
     """
 
     GRIPPER_LINKS = ("tool0",)
+    # batches up to this size take the whole-matrix path (measured crossover,
+    # benchmarks/env_throughput.py); larger ones the generated vector kernel
+    SMALL_BATCH = 1
 
     def __init__(
         self,
@@ -325,6 +411,7 @@ class UR5e(nn.Module):
         bound_centre = (gc.min(0) + gc.max(0)) / 2
         bound_radius = float((np.linalg.norm(gc - bound_centre, axis=1) + all_radii[g]).max())
         self._gripper_bound_list = bound_centre.tolist()
+        self.register_buffer("_gripper_bound_t", torch.tensor(bound_centre, dtype=dtype), persistent=False)
         self.gripper_bound_radius = bound_radius
         self._gripper_frame = self.frame_names.index(self.GRIPPER_LINKS[0])
         unknown = set(self_collision_links) - set(self.frame_names)
@@ -339,6 +426,27 @@ class UR5e(nn.Module):
         self.table_slice = _as_slice(self.table_mask.nonzero().squeeze(-1).tolist())
         self.gripper_slice = _as_slice(self.gripper_spheres.tolist())
         self.self_collision_slice = _as_slice(self.self_collision_spheres.tolist())
+        origin_h = torch.eye(4, dtype=torch.float64).repeat(len(origins), 1, 1)
+        for f, (O, o) in enumerate(self._origins):
+            origin_h[f, :3, :3], origin_h[f, :3, 3] = torch.tensor(O), torch.tensor(o)
+        self.register_buffer("_origin_h", origin_h.to(dtype), persistent=False)
+        self.register_buffer(
+            "_joint_origin_h", origin_h[[f for f, j in enumerate(joint_of_frame) if j >= 0]].to(dtype), persistent=False
+        )
+        self.register_buffer("_root_h", torch.eye(4, dtype=dtype), persistent=False)
+        local_h = torch.cat([self.sphere_local, torch.ones_like(self.sphere_local[:, :1])], dim=-1)
+        self.register_buffer("_sphere_local_h", local_h.unsqueeze(-1), persistent=False)  # (S, 4, 1)
+        self._generate_kernels()
+        self._refresh_sphere_cols()
+
+    def _refresh_sphere_cols(self) -> None:
+        # per-frame local columns, the generated sphere kernel's constant inputs
+        self._sphere_cols = [self.sphere_local[lo:hi, j] for _, lo, hi in self._sphere_groups for j in range(3)]
+
+    def _apply(self, fn, *args, **kwargs):
+        out = super()._apply(fn, *args, **kwargs)
+        self._refresh_sphere_cols()  # .to(device / dtype) replaced the buffers
+        return out
 
     # ------------------------------------------------------------------ joints
     @property
@@ -367,16 +475,13 @@ class UR5e(nn.Module):
         fixed = q3.new_tensor([WRIST_2_FIXED, WRIST_3_FIXED]).expand(*q3.shape[:-1], 2)
         return torch.cat([q3, w1, fixed], dim=-1)
 
-    def _walk(self, q3: torch.Tensor, keep_all: bool) -> tuple[list, int, torch.Tensor]:
+    def _chain(self, c, s) -> list:
         # Each frame is T = T_parent @ origin @ Rz(q_j). The origins of a UR
         # description are axis-aligned (entries 0 / +-1), so the chain is
         # evaluated entry by entry on (n,)-vectors, with products by 0 and +-1
-        # folded away at trace time: ~10 vector ops per frame instead of a
-        # batched 3x3 matmul, which on CPU is dominated by per-matrix overhead.
-        # Returns per-frame (R, p) as nested lists of tensors / Python floats.
-        q = self.full_joints(q3)
-        q = q.reshape(-1, 6).to(self.dtype)
-        c, s = torch.cos(q).unbind(-1), torch.sin(q).unbind(-1)
+        # folded away: ~10 vector ops per frame instead of a batched 3x3 matmul,
+        # which on CPU is dominated by per-matrix overhead. Generic over the
+        # value type: run once on _Sym inputs to generate the hot-path code.
         R: list[list] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
         p: list = [0.0, 0.0, 0.0]
         out = [(R, p)]
@@ -387,9 +492,70 @@ class UR5e(nn.Module):
             if j >= 0:
                 cj, sj = c[j], s[j]
                 R = [[_add(_mul(r[0], cj), _mul(r[1], sj)), _sub(_mul(r[1], cj), _mul(r[0], sj)), r[2]] for r in R]
-            if keep_all:
-                out.append((R, p))
-        return (out if keep_all else [(R, p)]), q.shape[0], q
+            out.append((R, p))
+        return out
+
+    def _sphere_blocks(self, out, cols) -> tuple:
+        # centre_i = p_i + sum_j R_ij * local_j, one (N, k) block per frame and
+        # coordinate; zero local columns and constant rotation entries fold away.
+        coords = []
+        for i in range(3):
+            blocks = []
+            for g, (f, lo, hi) in enumerate(self._sphere_groups):
+                R, p = out[f]
+                acc = p[i] if isinstance(p[i], float) else p[i].unsqueeze(-1)
+                for j in range(3):
+                    if self._group_nonzero[g][j]:
+                        r = R[i][j]
+                        acc = _add(acc, _mul(cols[g][j], r) if isinstance(r, float) else r.unsqueeze(-1) * cols[g][j])
+                blocks.append(acc)
+            coords.append(tuple(blocks))
+        R, p = out[self._gripper_frame]
+        bound = tuple(_add(p[i], _dot(R[i], self._gripper_bound_list)) for i in range(3))
+        return tuple(coords), tuple(out[-1][1]), bound
+
+    def _generate_kernels(self) -> None:
+        names = [f"c{j}" for j in range(6)] + [f"s{j}" for j in range(6)]
+        col_names = [[f"L{g}_{j}" for j in range(3)] for g in range(len(self._sphere_groups))]
+
+        def trace():
+            tr = _Tracer()
+            cs = [tr.input(n) for n in names]
+            cols = [[tr.input(n) for n in row] for row in col_names]
+            return tr, self._chain(cs[:6], cs[6:]), cols
+
+        tr, out, _ = trace()
+        flat = lambda R, p: tuple(x for i in range(3) for x in (*R[i], p[i]))  # noqa: E731
+        self._gen_tcp = tr.function("ur5e_tcp", names, flat(*out[-1]))
+        tr, out, _ = trace()
+        self._gen_tcp_pos = tr.function("ur5e_tcp_pos", names, tuple(out[-1][1]))
+        tr, out, _ = trace()
+        self._gen_frames = tr.function("ur5e_frames", names, tuple(flat(R, p) for R, p in out))
+        tr, out, cols = trace()
+        args = names + [n for row in col_names for n in row]
+        self._gen_spheres = tr.function("ur5e_spheres", args, self._sphere_blocks(out, cols))
+
+    def _small_frames(self, q: torch.Tensor) -> torch.Tensor:
+        # Few configurations: ~15 whole-matrix ops beat the ~100 vector ops of the
+        # generated kernel, whose cost is per-op overhead at this size.
+        n = q.shape[0]
+        c, s = torch.cos(q), torch.sin(q)
+        z, o = torch.zeros_like(c), torch.ones_like(c)
+        rz = torch.stack([c, -s, z, z, s, c, z, z, z, z, o, z, z, z, z, o], dim=-1).reshape(n, 6, 4, 4)
+        joint_T = self._joint_origin_h @ rz  # (n, 6, 4, 4)
+        T = self._root_h.expand(n, 4, 4)
+        out = [T]
+        for f, j in enumerate(self._joint_of_frame):
+            T = T @ (joint_T[:, j] if j >= 0 else self._origin_h[f])
+            out.append(T)
+        return torch.stack(out, dim=1)  # (n, F, 4, 4)
+
+    def _q6(self, q3: torch.Tensor) -> torch.Tensor:
+        return self.full_joints(q3).reshape(-1, 6).to(self.dtype)
+
+    @staticmethod
+    def _cos_sin(q: torch.Tensor) -> list:
+        return [*torch.cos(q).unbind(-1), *torch.sin(q).unbind(-1)]
 
     def frames(self, q3: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """World poses of every frame (``self.frame_names``) for active angles ``q3``.
@@ -398,23 +564,28 @@ class UR5e(nn.Module):
             rotations ``(..., F, 3, 3)`` and positions ``(..., F, 3)``.
         """
         self._check_q3(q3)
-        out, n, q = self._walk(q3, keep_all=True)
-        T = torch.stack([_stack_affine(R, p, n, q) for R, p in out], dim=1)
-        T = T.reshape(*q3.shape[:-1], len(out), 3, 4)
+        q = self._q6(q3)
+        n = q.shape[0]
+        frames = self._gen_frames(*self._cos_sin(q))
+        T = torch.stack([_stack_vec(e, n, q) for e in frames], dim=1)
+        T = T.reshape(*q3.shape[:-1], len(frames), 3, 4)
         return T[..., :3], T[..., 3]
 
     def tcp_pose(self, q3: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rotation ``(..., 3, 3)`` and position ``(..., 3)`` of the tcp frame."""
         self._check_q3(q3)
-        out, n, q = self._walk(q3, keep_all=False)
-        T = _stack_affine(*out[0], n, q).reshape(*q3.shape[:-1], 3, 4)
+        q = self._q6(q3)
+        T = _stack_vec(self._gen_tcp(*self._cos_sin(q)), q.shape[0], q).reshape(*q3.shape[:-1], 3, 4)
         return T[..., :3], T[..., 3]
 
     def fk(self, q3: torch.Tensor) -> torch.Tensor:
         """TCP position ``(..., 3)`` in the base frame (metres)."""
         self._check_q3(q3)
-        out, n, q = self._walk(q3, keep_all=False)
-        return _stack_vec(out[0][1], n, q).reshape(*q3.shape[:-1], 3)
+        q = self._q6(q3)
+        n = q.shape[0]
+        if n <= self.SMALL_BATCH:
+            return self._small_frames(q)[:, -1, :3, 3].reshape(*q3.shape[:-1], 3)
+        return _stack_vec(self._gen_tcp_pos(*self._cos_sin(q)), n, q).reshape(*q3.shape[:-1], 3)
 
     def link_spheres(self, q3: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Centres ``(..., S, 3)`` and radii ``(S,)`` of the collision-sphere cover."""
@@ -436,29 +607,26 @@ class UR5e(nn.Module):
             bounding sphere ``(N, 3)`` (radius ``gripper_bound_radius``).
         """
         self._check_q3(q3)
-        out, n, q = self._walk(q3, keep_all=True)
-        # centre_i = sum_j R_ij * local_j + p_i, one (N, k) block per frame; zero
-        # local columns and constant rotation entries are folded away.
-        coords = []
-        for i in range(3):
-            blocks = []
-            for (f, lo, hi), nonzero in zip(self._sphere_groups, self._group_nonzero):
-                R, p = out[f]
-                acc = p[i] if isinstance(p[i], float) else p[i].unsqueeze(-1)
-                for j in range(3):
-                    if nonzero[j]:
-                        col = self.sphere_local[lo:hi, j]
-                        r = R[i][j]
-                        acc = _add(acc, _mul(col, r) if isinstance(r, float) else r.unsqueeze(-1) * col)
-                if isinstance(acc, float):
-                    acc = q.new_full((n, hi - lo), acc)
-                blocks.append(acc.expand(n, hi - lo))
-            coords.append(torch.cat(blocks, dim=-1))
-        R, p = out[self._gripper_frame]
-        bound = [
-            _add(p[i], _dot(R[i], self._gripper_bound_list)) for i in range(3)
-        ]
-        return tuple(coords), _stack_vec(out[-1][1], n, q), _stack_vec(bound, n, q)
+        q = self._q6(q3)
+        n = q.shape[0]
+        if n <= self.SMALL_BATCH:
+            T = self._small_frames(q)
+            centres = (T[:, self.sphere_frame] @ self._sphere_local_h).squeeze(-1)  # (n, S, 4)
+            G = T[:, self._gripper_frame]
+            bound = G[:, :3, :3] @ self._gripper_bound_t + G[:, :3, 3]
+            return (centres[..., 0], centres[..., 1], centres[..., 2]), T[:, -1, :3, 3], bound
+        coords, tcp, bound = self._gen_spheres(*self._cos_sin(q), *self._sphere_cols)
+        xyz = tuple(
+            torch.cat(
+                [
+                    (b if isinstance(b, torch.Tensor) else q.new_full((hi - lo,), b)).expand(n, hi - lo)
+                    for b, (_, lo, hi) in zip(blocks, self._sphere_groups)
+                ],
+                dim=-1,
+            )
+            for blocks in coords
+        )
+        return xyz, _stack_vec(tcp, n, q), _stack_vec(bound, n, q)
 
     def reference_fk(self, q3: torch.Tensor) -> torch.Tensor:
         """TCP position through pytorch-kinematics' generic chain (slow; for checks)."""
