@@ -1,0 +1,148 @@
+"""Env throughput: EnvBase.step, the raw batched model, the Gymnasium env, and MuJoCo as the peer.
+
+Prints steps (transitions) per second for batch 1, 1024 and 16384:
+
+* ``EnvBase.step``: ``step_and_maybe_reset`` as a TorchRL collector calls it;
+* raw model: ``transition`` (the kinematic model f_s) alone, and
+  ``transition`` + ``reward`` (f_s and f_r: FK, sphere cover, obstacle / table /
+  self / workspace checks): a whole step without TorchRL's bookkeeping;
+* the Gymnasium env (unbatched, batch 1 only);
+* MuJoCo on the same URDF's collision primitives plus the box and the table
+  plane: set qpos, ``mj_kinematics`` + ``mj_collision``, one configuration at a
+  time in a Python loop (single thread) — the peer of one step's model work.
+
+Each figure is run eager and with ``compile_collision=True`` (the collision
+kernel fused by ``torch.compile``). Run:
+
+    python benchmarks/env_throughput.py            # full table
+    python benchmarks/env_throughput.py --quick    # smaller repeat counts
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import numpy as np
+import torch
+
+from torchrl_silp import UR5eReachEnv
+from torchrl_silp.robot import default_urdf_path
+
+
+def timed(fn, min_time: float, min_reps: int = 3) -> float:
+    """Seconds per call: warm up once, then repeat until ``min_time`` has passed."""
+    fn()
+    reps, start = 0, time.perf_counter()
+    while True:
+        fn()
+        reps += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= min_time and reps >= min_reps:
+            return elapsed / reps
+
+
+def bench_envbase(env: UR5eReachEnv, min_time: float) -> float:
+    td = env.reset()
+    gen = torch.Generator().manual_seed(0)
+    actions = torch.rand(64, *env.batch_size, 3, generator=gen) * 2 - 1
+    state = {"td": td, "i": 0}
+
+    def one():
+        td = state["td"]
+        td["action"] = actions[state["i"] % 64]
+        state["i"] += 1
+        _, state["td"] = env.step_and_maybe_reset(td)
+
+    return env.batch_size.numel() / timed(one, min_time)
+
+
+def bench_model(env: UR5eReachEnv, with_reward: bool, min_time: float) -> float:
+    obs = env.reset()["observation"]
+    action = torch.rand(*env.batch_size, 3) * 2 - 1
+
+    def one():
+        nxt = env.transition(obs, action)
+        if with_reward:
+            env.reward(obs, nxt)
+
+    return env.batch_size.numel() / timed(one, min_time)
+
+
+def bench_gym(min_time: float) -> float:
+    import gymnasium as gym
+
+    import torchrl_silp  # noqa: F401  (registers the id)
+
+    env = gym.make("torchrl_silp/UR5eReach-v0")
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+
+    def one():
+        _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 3).astype(np.float32))
+        if terminated or truncated:
+            env.reset()
+
+    return 1.0 / timed(one, min_time)
+
+
+def bench_mujoco(n: int) -> tuple[float, int]:
+    import mujoco
+
+    spec = mujoco.MjSpec.from_file(default_urdf_path())
+    # links without inertials need bounds to compile (collision only; nothing is simulated)
+    spec.compiler.boundmass = 1e-3
+    spec.compiler.boundinertia = 1e-6
+    box = spec.worldbody.add_body(name="obstacle", mocap=True, pos=[0.5, 0.25, 0.15])
+    box.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.1, 0.1, 0.15])
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[2, 2, 0.1])
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    env = UR5eReachEnv(batch_size=(n,), seed=0)
+    tasks = env.sample_tasks(n)
+    qpos = env.robot.full_joints(tasks["q"]).double().numpy()
+    centres = ((tasks["obstacle"][:, 0::2] + tasks["obstacle"][:, 1::2]) / 2).double().numpy()
+    contacts = 0
+    start = time.perf_counter()
+    for i in range(n):
+        data.qpos[:] = qpos[i]
+        data.mocap_pos[0] = centres[i]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_collision(model, data)
+        contacts += data.ncon
+    return n / (time.perf_counter() - start), model.ngeom
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="shorter timing windows")
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 1024, 16384])
+    parser.add_argument("--no-compile", action="store_true", help="skip the compiled variant")
+    args = parser.parse_args()
+    min_time = 0.5 if args.quick else 2.0
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
+
+    mj_rate, ngeom = bench_mujoco(20_000 if args.quick else 100_000)
+    print(f"MuJoCo mj_kinematics + mj_collision ({ngeom} geoms), Python loop, 1 thread: {mj_rate:,.0f} configs/s")
+    gym_rate = bench_gym(min_time)
+    print(f"Gymnasium env (batch 1): {gym_rate:,.0f} steps/s ({1e6 / gym_rate:.0f} us/step)")
+
+    variants = [("eager", False)] + ([] if args.no_compile else [("compiled", True)])
+    header = f"{'variant':9s} {'batch':>6s} {'EnvBase.step':>14s} {'transition':>14s} {'trans+reward':>14s} {'vs MuJoCo':>10s}"
+    print(header)
+    print("-" * len(header))
+    for name, compiled in variants:
+        for b in args.batch_sizes:
+            env = UR5eReachEnv(batch_size=(b,), seed=0, compile_collision=compiled)
+            step = bench_envbase(env, min_time)
+            trans = bench_model(env, False, min_time)
+            model = bench_model(env, True, min_time)
+            print(
+                f"{name:9s} {b:6d} {step:14,.0f} {trans:14,.0f} {model:14,.0f} {model / mj_rate:9.1f}x"
+                f"   (one step {1e6 * b / step:,.0f} us)"
+            )
+
+
+if __name__ == "__main__":
+    main()
