@@ -1,0 +1,305 @@
+"""The planner-backed demonstration buffer and the mixed demo / interaction sampler."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from tensordict import NestedKey, TensorDictBase
+from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
+
+from torchrl_silp.planning import plan_demonstrations
+
+__all__ = ["DemoReplayBuffer", "MixedReplay", "TRANSITION_KEYS"]
+
+# What a transition needs for off-policy learning with SILP+: the keys both
+# buffers store, so that one sampled batch concatenates demos and interaction.
+TRANSITION_KEYS: tuple[NestedKey, ...] = (
+    "observation",
+    "action",
+    "is_demo",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+    ("next", "truncated"),
+)
+
+
+def _storage_device(device):
+    # LazyTensorStorage wants "auto" (store where the data comes from), not None
+    return "auto" if device is None else torch.device(device)
+
+
+def _flat(data: TensorDictBase) -> TensorDictBase:
+    return data.reshape(-1) if data.batch_dims != 1 else data
+
+
+class DemoReplayBuffer(TensorDictReplayBuffer):
+    """A replay buffer whose ``extend(episodes)`` plans demonstrations from them.
+
+    Every call runs the experience-based planner
+    (:func:`~torchrl_silp.planning.plan_demonstrations`) on the episodes of a
+    collector batch (``[B, T]`` or flat) and stores the resulting MDP
+    transitions, flagged ``"is_demo"``. Everything else is a TorchRL
+    :class:`~torchrl.data.TensorDictReplayBuffer`: sampling, samplers, and
+    :meth:`dumps` / :meth:`loads` through the storage checkpointers.
+
+    Args:
+        env: the :class:`~torchrl_silp.envs.UR5eReachEnv` whose model (edge check,
+            transition, reward) the planner uses.
+        capacity: number of demo transitions kept (FIFO); ignored when ``storage`` is given.
+        storage: a TorchRL storage; ``LazyTensorStorage(capacity, device=device)`` by default.
+        device: device of the default storage.
+        keys: keys stored for each demo transition (``None`` keeps all the planner returns).
+        planner_kwargs: forwarded to :func:`plan_demonstrations` (``d``, ``n_pairs``,
+            ``step_size``, ``method``, ...).
+        **kwargs: forwarded to :class:`~torchrl.data.TensorDictReplayBuffer`
+            (``batch_size``, ``sampler``, ``transform``, ...).
+
+    Attributes:
+        planning_time: total seconds spent planning in :meth:`extend`.
+        episodes_planned: number of episodes given to the planner.
+        demos_added: number of demo transitions stored (including overwritten ones).
+
+    Examples:
+        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl_silp.data import DemoReplayBuffer
+        >>> env = UR5eReachEnv(num_envs=4, seed=0)
+        >>> episodes = env.rollout(50, break_when_any_done=False)
+        >>> demos = DemoReplayBuffer(env, capacity=10_000, batch_size=32)
+        >>> _ = demos.extend(episodes)
+        >>> len(demos) > 0
+        True
+        >>> bool(demos.sample()["is_demo"].all())
+        True
+    """
+
+    def __init__(
+        self,
+        env,
+        *,
+        capacity: int = 100_000,
+        storage=None,
+        device: torch.device | str | None = None,
+        keys: Sequence[NestedKey] | None = TRANSITION_KEYS,
+        planner_kwargs: dict | None = None,
+        **kwargs,
+    ):
+        if not all(hasattr(env, name) for name in ("transition", "reward", "edge_collision_free")):
+            raise TypeError("env must provide transition, reward and edge_collision_free (a UR5eReachEnv)")
+        if storage is None:
+            if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
+                raise ValueError(f"capacity must be a positive int, got {capacity!r}")
+            storage = LazyTensorStorage(capacity, device=_storage_device(device))
+        super().__init__(storage=storage, **kwargs)
+        self.env = env
+        self.keys = None if keys is None else tuple(keys)
+        self.planner_kwargs = dict(planner_kwargs or {})
+        self.planning_time = 0.0
+        self.episodes_planned = 0
+        self.demos_added = 0
+
+    def extend(self, episodes: TensorDictBase, *args, **kwargs) -> torch.Tensor:
+        """Plan demonstrations from ``episodes`` and store them; returns their indices.
+
+        Episodes that yield no demonstration (no path found) add nothing.
+        """
+        start = time.perf_counter()
+        demos = plan_demonstrations(self.env, episodes, **self.planner_kwargs)
+        self.planning_time += time.perf_counter() - start
+        self.episodes_planned += _count_episodes(episodes)
+        return self.add_demonstrations(demos, *args, **kwargs)
+
+    def add_demonstrations(self, demos: TensorDictBase, *args, **kwargs) -> torch.Tensor:
+        """Store ready-made demo transitions (flagged ``"is_demo"``) without planning."""
+        demos = _flat(demos)
+        if demos.numel() == 0:
+            return torch.empty(0, dtype=torch.long)
+        demos.set("is_demo", torch.ones(*demos.batch_size, 1, dtype=torch.bool, device=demos.device))
+        if self.keys is not None:
+            demos = demos.select(*self.keys)
+        self.demos_added += demos.numel()
+        return super().extend(demos, *args, **kwargs)
+
+    def dumps(self, path):
+        super().dumps(path)
+        stats = {"planning_time": self.planning_time, "episodes_planned": self.episodes_planned,
+                 "demos_added": self.demos_added}
+        (Path(path) / "demo_stats.json").write_text(json.dumps(stats))
+
+    def loads(self, path):
+        super().loads(path)
+        stats_file = Path(path) / "demo_stats.json"
+        if stats_file.exists():
+            stats = json.loads(stats_file.read_text())
+            self.planning_time = stats["planning_time"]
+            self.episodes_planned = stats["episodes_planned"]
+            self.demos_added = stats["demos_added"]
+
+
+def _count_episodes(episodes: TensorDictBase) -> int:
+    """Trajectory segments in a ``[..., T]`` batch: finished episodes plus each row's unfinished tail."""
+    done = episodes.get(("next", "done"), None)
+    if done is None or episodes.batch_dims == 0:
+        return 0
+    d = done.reshape(-1, episodes.batch_size[-1])
+    return int(d.sum()) + int((~d[:, -1]).sum())
+
+
+def _dump(buffer: ReplayBuffer, path: Path) -> None:
+    # TorchRL's checkpointers refuse a storage that was never written to
+    path.mkdir(parents=True, exist_ok=True)
+    if len(buffer) == 0:
+        (path / "EMPTY").touch()
+    else:
+        buffer.dumps(path)
+
+
+def _load(buffer: ReplayBuffer, path: Path) -> None:
+    if not (path / "EMPTY").exists():
+        buffer.loads(path)
+
+
+class MixedReplay:
+    """Samples ``N_D`` demonstrations and ``N_pi`` interaction transitions per batch, exactly.
+
+    The paper's SILP+ batch: ``round(demo_fraction * batch_size)`` transitions
+    from the demonstration buffer and the rest from the interaction buffer,
+    concatenated into one ``[batch_size]`` TensorDict with ``"is_demo"`` set on
+    each part. Before the demo buffer holds anything every sample comes from the
+    interaction buffer (and the other way round).
+
+    This mirrors :class:`torchrl.data.OfflineToOnlineReplayBuffer` (exact split
+    per batch) but does not wrap it: that class treats its offline part as an
+    immutable, non-empty dataset, has no ``"is_demo"`` flag and no
+    ``dumps``/``loads``; here both parts grow during training, either may be
+    empty, and both are checkpointed.
+
+    :meth:`extend` stores interaction data, dropping transitions flagged
+    ``("next", "discard")`` (collision type 1 of the env). Demonstrations go into
+    the demo buffer directly (``mixed.demo_buffer.extend(episodes)``).
+
+    Args:
+        demo_buffer: the :class:`DemoReplayBuffer` (any TorchRL replay buffer works).
+        interaction_buffer: a TorchRL replay buffer; by default a
+            ``TensorDictReplayBuffer(LazyTensorStorage(interaction_capacity, device=device))``.
+        interaction_capacity: capacity of the default interaction buffer.
+        demo_fraction: fraction of each batch drawn from demonstrations, in ``[0, 1]``.
+        batch_size: default ``sample`` size.
+        keys: keys kept in both parts (must be present in both).
+        device: where sampled batches are returned (default: where they are stored).
+
+    Examples:
+        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl_silp.data import DemoReplayBuffer, MixedReplay
+        >>> env = UR5eReachEnv(num_envs=4, seed=0)
+        >>> episodes = env.rollout(50, break_when_any_done=False)
+        >>> mixed = MixedReplay(DemoReplayBuffer(env), demo_fraction=0.25, batch_size=64)
+        >>> _ = mixed.extend(episodes)
+        >>> mixed.sample()["is_demo"].sum().item()  # no demos planned yet
+        0
+        >>> _ = mixed.demo_buffer.extend(episodes)
+        >>> mixed.sample()["is_demo"].sum().item()
+        16
+    """
+
+    def __init__(
+        self,
+        demo_buffer: ReplayBuffer,
+        interaction_buffer: ReplayBuffer | None = None,
+        *,
+        interaction_capacity: int = 1_000_000,
+        demo_fraction: float = 0.25,
+        batch_size: int | None = None,
+        keys: Sequence[NestedKey] = TRANSITION_KEYS,
+        device: torch.device | str | None = None,
+    ):
+        if not isinstance(demo_fraction, (int, float)) or not 0.0 <= demo_fraction <= 1.0:
+            raise ValueError(f"demo_fraction must be in [0, 1], got {demo_fraction!r}")
+        if batch_size is not None and (isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1):
+            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+        if interaction_buffer is None:
+            if isinstance(interaction_capacity, bool) or not isinstance(interaction_capacity, int) or interaction_capacity < 1:
+                raise ValueError(f"interaction_capacity must be a positive int, got {interaction_capacity!r}")
+            interaction_buffer = TensorDictReplayBuffer(
+                storage=LazyTensorStorage(interaction_capacity, device=_storage_device(device))
+            )
+        self.demo_buffer = demo_buffer
+        self.interaction_buffer = interaction_buffer
+        self.demo_fraction = float(demo_fraction)
+        self.batch_size = batch_size
+        self.keys = tuple(keys)
+        self.device = None if device is None else torch.device(device)
+        self.discarded = 0
+
+    def extend(self, data: TensorDictBase) -> torch.Tensor:
+        """Store interaction transitions (any batch shape); returns their indices."""
+        data = _flat(data)
+        discard = data.get(("next", "discard"), None)
+        if discard is not None:
+            keep = ~discard.reshape(-1)
+            self.discarded += int((~keep).sum())
+            data = data[keep]
+        data = data.select(*[k for k in self.keys if k != "is_demo"])
+        data.set("is_demo", torch.zeros(*data.batch_size, 1, dtype=torch.bool, device=data.device))
+        if data.numel() == 0:
+            return torch.empty(0, dtype=torch.long)
+        return self.interaction_buffer.extend(data)
+
+    def split(self, batch_size: int) -> tuple[int, int]:
+        """``(N_D, N_pi)`` for a batch of ``batch_size`` given what the buffers hold now."""
+        n_demo = round(self.demo_fraction * batch_size)
+        if len(self.demo_buffer) == 0:
+            n_demo = 0
+        elif len(self.interaction_buffer) == 0:
+            n_demo = batch_size
+        return n_demo, batch_size - n_demo
+
+    def sample(self, batch_size: int | None = None) -> TensorDictBase:
+        """A ``[batch_size]`` batch: ``N_D`` demos first, then ``N_pi`` interaction transitions."""
+        batch_size = self.batch_size if batch_size is None else batch_size
+        if batch_size is None:
+            raise ValueError("batch_size must be given here or to MixedReplay(batch_size=...)")
+        if len(self.demo_buffer) == 0 and len(self.interaction_buffer) == 0:
+            raise RuntimeError("MixedReplay.sample: both buffers are empty")
+        n_demo, n_pi = self.split(batch_size)
+        parts = []
+        if n_demo:
+            parts.append(self._take(self.demo_buffer, n_demo, True))
+        if n_pi:
+            parts.append(self._take(self.interaction_buffer, n_pi, False))
+        out = torch.cat(parts) if len(parts) > 1 else parts[0]
+        return out if self.device is None else out.to(self.device)
+
+    def _take(self, buffer: ReplayBuffer, n: int, is_demo: bool) -> TensorDictBase:
+        td = buffer.sample(n)
+        missing = [k for k in self.keys if k != "is_demo" and k not in td.keys(include_nested=True)]
+        if missing:
+            raise KeyError(f"MixedReplay: the {'demo' if is_demo else 'interaction'} buffer lacks keys {missing}")
+        td = td.select(*[k for k in self.keys if k != "is_demo"])
+        td.set("is_demo", torch.full((n, 1), is_demo, dtype=torch.bool, device=td.device))
+        return td
+
+    def __len__(self) -> int:
+        return len(self.demo_buffer) + len(self.interaction_buffer)
+
+    def dumps(self, path) -> None:
+        """Checkpoint both buffers (TorchRL storage checkpointers) under ``path``."""
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        _dump(self.demo_buffer, path / "demos")
+        _dump(self.interaction_buffer, path / "interaction")
+        meta = {"demo_fraction": self.demo_fraction, "batch_size": self.batch_size, "discarded": self.discarded}
+        (path / "mixed.json").write_text(json.dumps(meta))
+
+    def loads(self, path) -> None:
+        """Restore both buffers from :meth:`dumps` output."""
+        path = Path(path)
+        _load(self.demo_buffer, path / "demos")
+        _load(self.interaction_buffer, path / "interaction")
+        meta = json.loads((path / "mixed.json").read_text())
+        self.demo_fraction, self.batch_size, self.discarded = meta["demo_fraction"], meta["batch_size"], meta["discarded"]

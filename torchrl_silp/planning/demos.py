@@ -1,0 +1,198 @@
+"""Planned paths -> MDP demonstrations (paper, sec. 3.3, "Demonstrations Generation in SILP+")."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from torchrl_silp.planning.roadmap import ExperienceRoadmap
+from torchrl_silp.planning.search import SEARCH_METHODS, Paths, roadmap_paths
+
+__all__ = ["plan_demonstrations", "paths_to_demonstrations"]
+
+
+def _split_counts(m: torch.Tensor) -> torch.Tensor:
+    # InsertNodes: halve the step until every action is within [-1, 1]. A path
+    # edge needing actions of max magnitude m becomes P = 2^k equal steps,
+    # k the fewest halvings with m / 2^k <= 1; dividing by a power of two is
+    # exact in floating point, so the check below is the one the actions meet.
+    P = torch.ones_like(m, dtype=torch.long)
+    while True:
+        over = m / P > 1.0
+        if not bool(over.any()):
+            return P
+        P = torch.where(over, P * 2, P)
+
+
+def paths_to_demonstrations(env, roadmap: ExperienceRoadmap, episode: torch.Tensor, paths: Paths) -> TensorDict:
+    """Flat MDP transitions along found paths, with InsertNodes.
+
+    For each found path ``s_0 ... s_n`` each edge ``s_i -> s_{i+1}`` gives the
+    action ``a = (q_{i+1} - q_i) / ACTION_SCALE``; an edge whose action
+    leaves ``[-1, 1]`` is halved (intermediate configurations on the
+    segment, which the roadmap's edge check covered) until every action is
+    within bounds. The observations' goal is the TCP of the path's goal node,
+    next observations come from ``env.transition`` and rewards, collision
+    and success flags from ``env.outcome``. A demonstration ends at its first
+    successful step (the env would terminate there): ``terminated = done =
+    success`` on that step. Demonstrations with a colliding step (only
+    possible when the episode's states were not the env's own, e.g. noisy
+    observations) are dropped whole.
+
+    Args:
+        env: the :class:`~torchrl_silp.envs.reach.UR5eReachEnv`.
+        roadmap: the roadmap the paths were found on.
+        episode: long ``[Q]`` the episode of each query.
+        paths: :class:`~torchrl_silp.planning.search.Paths` ``[Q]``.
+
+    Returns:
+        TensorDict ``[N]`` with the keys of an env rollout plus ``"is_demo"``,
+        demonstrations one after the other, steps in order.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl_silp.planning import ExperienceRoadmap, roadmap_paths
+        >>> env = UR5eReachEnv(num_envs=2, seed=0)
+        >>> roadmap = ExperienceRoadmap(env, env.rollout(20, break_when_any_done=False))
+        >>> ep, s, g = roadmap.queries(4, torch.Generator().manual_seed(0))
+        >>> demos = paths_to_demonstrations(env, roadmap, ep, roadmap_paths(roadmap, ep, s, g))
+        >>> bool((demos["action"].abs() <= 1).all())
+        True
+    """
+    device, dtype = roadmap.device, env.dtype
+    q_all, scale = roadmap.q.to(dtype), env.ACTION_SCALE
+    ok = paths.found & (paths.length >= 2)
+    nodes, length, episode = paths.nodes[ok], paths.length[ok], episode[ok]
+    D = nodes.shape[0]
+    L = nodes.shape[1] if D else 1
+    # one row per path edge, demos in order, edges in order within a demo
+    has_edge = torch.arange(L - 1, device=device) < (length - 1).unsqueeze(-1)
+    demo, k = has_edge.nonzero(as_tuple=True)
+    e = episode[demo]
+    q_from = q_all[e, nodes[demo, k]]
+    delta = q_all[e, nodes[demo, k + 1]] - q_from
+    action = delta / scale
+    P = _split_counts(action.abs().amax(-1))
+    # one row per transition: piece i of P along the edge
+    n = int(P.sum())
+    edge = torch.repeat_interleave(torch.arange(P.numel(), device=device), P, output_size=n)
+    first = torch.cumsum(P, 0) - P
+    piece = torch.arange(n, device=device) - first[edge]
+    Pf = P.to(dtype)[edge].unsqueeze(-1)
+    q = q_from[edge] + (piece.to(dtype).unsqueeze(-1) / Pf) * delta[edge]
+    act = action[edge] / Pf
+    e_t, demo_t = e[edge], demo[edge]
+    goal_node = nodes[:, -1]
+    goal_tcp = roadmap.tcp.to(dtype)[episode, goal_node][demo_t]
+    goal_q = q_all[episode, goal_node][demo_t]
+    obs = torch.cat([q, env.robot.fk(q), roadmap.obstacle.to(dtype)[e_t], goal_tcp], dim=-1)
+    next_obs = env.transition(obs, act)
+    reward, collision, success, flags = env.outcome(obs, next_obs)
+
+    # cut each demo after its first success: later steps are past the env's termination
+    succ = success.squeeze(-1).long()
+    before = torch.cumsum(succ, 0) - succ  # successes strictly before, over the flat layout
+    demo_first = torch.zeros(D + 1, dtype=torch.long, device=device)
+    demo_first[1:] = torch.bincount(demo_t, minlength=D).cumsum(0)
+    keep = (before - before[demo_first[:-1]][demo_t]) == 0
+    bad = torch.zeros(D, dtype=torch.long, device=device)
+    bad.index_add_(0, demo_t, (collision.squeeze(-1) & keep).long())
+    keep &= bad[demo_t] == 0
+    idx = keep.nonzero().squeeze(-1)
+
+    N = idx.numel()
+    false = torch.zeros(N, 1, dtype=torch.bool, device=device)
+    success = success[idx]
+    nxt = {
+        "observation": next_obs[idx],
+        "goal_q": goal_q[idx],
+        "reward": reward[idx],
+        "collision": collision[idx],
+        "success": success,
+        "discard": false.clone(),
+        "collision_reason": flags[idx],
+        "done": success.clone(),
+        "terminated": success.clone(),
+        "truncated": false.clone(),
+    }
+    root = {
+        "observation": obs[idx],
+        "action": act[idx],
+        "goal_q": goal_q[idx],
+        # flags of the state a step starts from: a demo state is never terminal or colliding
+        "collision": false.clone(),
+        "success": false.clone(),
+        "discard": false.clone(),
+        "collision_reason": torch.zeros(N, 1, dtype=flags.dtype, device=device),
+        "done": false.clone(),
+        "terminated": false.clone(),
+        "truncated": false.clone(),
+        "is_demo": torch.ones(N, 1, dtype=torch.bool, device=device),
+        "next": TensorDict(nxt, batch_size=[N], device=device),
+    }
+    return TensorDict(root, batch_size=[N], device=device)
+
+
+def plan_demonstrations(
+    env,
+    episodes: TensorDictBase,
+    *,
+    d: float = 0.15,
+    n_pairs: int = 10,
+    step_size: float = 0.02,
+    method: str = "exact",
+    generator: torch.Generator | None = None,
+    lazy: bool = True,
+    certify: bool = False,
+) -> TensorDict:
+    """Demonstrations planned on the experience of a batch of episodes (SILP+).
+
+    Builds an :class:`~torchrl_silp.planning.roadmap.ExperienceRoadmap` per
+    episode, plans ``n_pairs`` random start/goal node pairs per episode plus
+    the episode's own start to the node nearest its real goal, and turns
+    every path found into MDP transitions (:func:`paths_to_demonstrations`):
+    every action in ``[-1, 1]``, every step along a collision-checked edge,
+    every demonstration ending with a successful, terminating step at its
+    goal node.
+
+    Args:
+        env: the :class:`~torchrl_silp.envs.reach.UR5eReachEnv` the episodes come from.
+        episodes: rollout TensorDict ``[..., T]`` (a ``[B, T]`` rollout or collector batch).
+        d: largest TCP distance of a roadmap edge (m); the paper's 0.15.
+        n_pairs: random start/goal pairs per episode (>= 0).
+        step_size: subdivision step of the edge collision check (rad).
+        method: ``"exact"`` (shortest paths) or ``"greedy"`` (the paper's walk).
+        generator: torch generator of the start/goal draw.
+        lazy: check only the edges the search needs (Lazy PRM, same paths as
+            checking every candidate edge first; see
+            :func:`~torchrl_silp.planning.search.roadmap_paths`).
+        certify: prove every edge free point by point instead of the paper's
+            subdivision check (see :mod:`torchrl_silp.planning.edges`).
+
+    Returns:
+        TensorDict ``[N]`` of transitions with the keys and dtypes of an env
+        rollout (``"observation"``, ``"action"``, ``"goal_q"``, ``("next",
+        "reward")``, the done flags, ``"collision"``, ``"success"``, ...) plus
+        ``"is_demo"`` (bool ``[N, 1]``, True); demonstrations one after the
+        other, each closed by ``("next", "done")``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_silp import UR5eReachEnv
+        >>> env = UR5eReachEnv(num_envs=4, seed=0)
+        >>> episodes = env.rollout(50, break_when_any_done=False)
+        >>> demos = plan_demonstrations(env, episodes, generator=torch.Generator().manual_seed(0))
+        >>> bool(demos["is_demo"].all()), bool((demos["action"].abs() <= 1).all())
+        (True, True)
+        >>> int(demos["next", "done"].sum()) == int(demos["next", "success"].sum())
+        True
+    """
+    if method not in SEARCH_METHODS:
+        raise ValueError(f"method must be one of {SEARCH_METHODS}, got {method!r}")
+    if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
+        raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
+    roadmap = ExperienceRoadmap(env, episodes, d=d, step_size=step_size, lazy=lazy, certify=certify)
+    episode, start, goal = roadmap.queries(n_pairs, generator)
+    paths = roadmap_paths(roadmap, episode, start, goal, method=method)
+    return paths_to_demonstrations(env, roadmap, episode, paths)

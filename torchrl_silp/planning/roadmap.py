@@ -1,0 +1,335 @@
+"""The experience roadmap: a PRM over the collision-free states an episode visited.
+
+Paper, sec. 3.2: the nodes of episode ``e`` are its visited collision-free
+states ``S_f``; an edge joins two nodes whose TCPs are at most ``d`` apart and
+whose joint-space segment passes the subdivision collision check. Every
+episode of a batch becomes one padded graph, so a batch of ``E`` episodes is
+held as ``[E, N]`` node tensors and ``[E, N, N]`` edge tensors with masks, and
+all of them are built with a handful of batched tensor operations.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+
+from torchrl_silp.planning.edges import clearance_radius, segment_collision_free
+
+__all__ = ["ExperienceRoadmap", "split_episodes"]
+
+def _check_positive(name: str, value, unit: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0 or not math.isfinite(value):
+        raise ValueError(f"{name} must be a positive finite number of {unit}, got {value!r}")
+    return float(value)
+
+
+def split_episodes(episodes: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """Episode boundaries of a rollout batch.
+
+    A row of a ``[B, T]`` batch from an auto-resetting env may hold several
+    episodes, and a collector's batch may start in the middle of one. A new
+    episode starts at ``t = 0`` of every row, where ``("collector",
+    "traj_ids")`` changes (when present) and after every ``("next", "done")``.
+
+    Args:
+        episodes: TensorDict with batch dims ``[..., T]`` (at least one dim).
+
+    Returns:
+        ``starts``: bool ``[R, T]`` (``R`` the flattened leading dims), True on
+        the first step of an episode; ``episode``: long ``[R, T]``, the index of
+        the episode of each step, counted row-major from 0.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> done = torch.tensor([[False, True, False, False]]).unsqueeze(-1)
+        >>> td = TensorDict({("next", "done"): done}, batch_size=[1, 4])
+        >>> starts, episode = split_episodes(td)
+        >>> episode.tolist()
+        [[0, 0, 1, 1]]
+    """
+    if not isinstance(episodes, TensorDictBase):
+        raise TypeError(f"episodes must be a TensorDict with batch dims [..., T], got {type(episodes).__name__}")
+    if episodes.batch_dims < 1 or episodes.numel() == 0:
+        raise ValueError(f"episodes must have batch dims [..., T] with T >= 1, got {tuple(episodes.batch_size)}")
+    T = episodes.batch_size[-1]
+    done = episodes.get(("next", "done"), None)
+    if done is None:
+        raise ValueError('episodes must hold ("next", "done") to find the episode boundaries')
+    done = done.reshape(-1, T)
+    starts = torch.zeros_like(done)
+    starts[:, 0] = True
+    starts[:, 1:] = done[:, :-1]
+    traj = episodes.get(("collector", "traj_ids"), None)
+    if traj is not None:
+        traj = traj.reshape(-1, T)
+        starts[:, 1:] |= traj[:, 1:] != traj[:, :-1]
+    episode = starts.reshape(-1).cumsum(0).reshape(starts.shape) - 1
+    return starts, episode
+
+
+class ExperienceRoadmap:
+    """Padded roadmaps over the collision-free states of a batch of episodes.
+
+    Nodes of an episode: its first state and every next state whose
+    ``("next", "collision")`` flag is False, in visiting order, exact repeats
+    dropped (a type-1/2 collision puts the arm back on the previous state).
+    Node 0 of every episode is its first state. Candidate edges join two
+    nodes of one episode whose TCPs are at most ``d`` apart; an edge is kept
+    when its joint segment passes
+    :func:`~torchrl_silp.planning.edges.segment_collision_free`: the paper's
+    subdivision check at ``step_size`` (the default; the predicate of
+    ``env.edge_collision_free`` on that edge alone), or, with
+    ``certify=True``, a proof that every point of the segment is free. Edges are undirected and
+    weighted by the TCP distance.
+
+    Episodes are split with ``("collector", "traj_ids")`` when present and with
+    the done flags (see :func:`split_episodes`), so a ``[B, T]`` batch of an
+    auto-resetting env or a flat ``[N]`` slice of a replay buffer both work.
+
+    With ``lazy=False`` every candidate edge is checked at construction, in one
+    batched call over all candidate pairs of all episodes. With ``lazy=True``
+    none is; :meth:`check_edges` checks the ones a search asks for (the
+    Lazy-PRM scheme :func:`~torchrl_silp.planning.search.roadmap_paths` uses):
+    a random-policy episode of 50 steps has ~700 candidate pairs at
+    ``d = 0.15`` (~7,500 subdivision configurations), of which the shortest
+    paths of a dozen queries use a few dozen.
+
+    Args:
+        env: the :class:`~torchrl_silp.envs.reach.UR5eReachEnv` whose model checks edges.
+        episodes: rollout TensorDict ``[..., T]`` with ``"observation"``,
+            ``("next", "observation")``, ``("next", "collision")`` and
+            ``("next", "done")`` (optionally ``("collector", "traj_ids")`` and
+            ``("next", "success")``).
+        d: largest TCP distance of an edge (m); the paper's 0.15.
+        step_size: subdivision step, or the finest bisection interval of the
+            certified check (rad).
+        lazy: defer the edge checks to :meth:`check_edges`.
+        certify: prove edges free point by point (slower, conservative near
+            contact) instead of checking samples.
+
+    Attributes:
+        q: ``[E, N, 3]`` joint angles of the nodes (zero padding).
+        tcp: ``[E, N, 3]`` TCP positions of the nodes.
+        mask: bool ``[E, N]``, True on real nodes (the first ``num_nodes[e]``).
+        num_nodes: long ``[E]``.
+        obstacle: ``[E, 6]`` and goal ``[E, 3]`` of each episode.
+        reached: bool ``[E]``, whether the episode reached its goal.
+        distance: ``[E, N, N]`` TCP distances between nodes.
+        candidates: bool ``[E, N, N]``, symmetric: node pairs within ``d``.
+        checked: bool ``[E, N, N]``: candidate edges whose check has run.
+        colliding: bool ``[E, N, N]``: checked edges that failed it.
+
+    Examples:
+        >>> from torchrl_silp import UR5eReachEnv
+        >>> env = UR5eReachEnv(num_envs=2, seed=0)
+        >>> episodes = env.rollout(20, break_when_any_done=False)
+        >>> roadmap = ExperienceRoadmap(env, episodes, d=0.15)
+        >>> roadmap.q.shape[0], roadmap.adjacency.shape == roadmap.distance.shape
+        (2, True)
+        >>> bool((roadmap.weights[roadmap.adjacency] <= 0.15).all())
+        True
+    """
+
+    def __init__(
+        self,
+        env,
+        episodes: TensorDictBase,
+        *,
+        d: float = 0.15,
+        step_size: float = 0.02,
+        lazy: bool = False,
+        certify: bool = False,
+    ):
+        self.d = _check_positive("d", d, "metres")
+        self.step_size = _check_positive("step_size", step_size, "radians")
+        if not isinstance(lazy, bool):
+            raise TypeError(f"lazy must be a bool, got {lazy!r}")
+        if not isinstance(certify, bool):
+            raise TypeError(f"certify must be a bool, got {certify!r}")
+        self.certify = certify
+        self._radius = None  # clearance_radius of every node, on the first certified check
+        for name in ("collides", "transition", "outcome"):
+            if not callable(getattr(env, name, None)):
+                raise TypeError(f"env must be a UR5eReachEnv (with .{name}), got {type(env).__name__}")
+        starts, episode = split_episodes(episodes)
+        for key in ("observation", ("next", "observation"), ("next", "collision")):
+            if episodes.get(key, None) is None:
+                raise ValueError(f"episodes must hold {key!r}")
+        self.env = env
+        T = episodes.batch_size[-1]
+        obs = episodes.get("observation").reshape(-1, T, 15)
+        next_obs = episodes.get(("next", "observation")).reshape(-1, T, 15)
+        collision = episodes.get(("next", "collision")).reshape(-1, T)
+        success = episodes.get(("next", "success"), None)
+        device = obs.device
+        E = int(episode[-1, -1]) + 1
+
+        # Two candidate slots per step, in visiting order: the state an episode
+        # starts from, and the next state unless it collided.
+        slot_state = torch.stack([obs, next_obs], dim=2).reshape(-1, 15)
+        slot_valid = torch.stack([starts, ~collision], dim=2).reshape(-1)
+        slot_episode = episode.unsqueeze(-1).expand(-1, -1, 2).reshape(-1)
+        keep = slot_valid.nonzero().squeeze(-1)
+        state, node_episode = slot_state[keep], slot_episode[keep]
+        first_step = starts.reshape(-1).nonzero().squeeze(-1)
+        first_obs = obs.reshape(-1, 15)[first_step]
+        self.obstacle = first_obs[:, 6:12].contiguous()
+        self.goal = first_obs[:, 12:15].contiguous()
+        reached = torch.zeros(E, dtype=torch.long, device=device)
+        if success is not None:
+            reached.index_add_(0, episode.reshape(-1), success.reshape(-1).long())
+        self.reached = reached > 0
+
+        qt, mask = self._pad(state[:, :6], node_episode, E)
+        # exact repeats: a node equal to an earlier node of its episode
+        q = qt[..., :3]
+        same = (q.unsqueeze(2) == q.unsqueeze(1)).all(-1) & mask.unsqueeze(1) & mask.unsqueeze(2)
+        repeat = torch.tril(same, diagonal=-1).any(-1)
+        if bool(repeat.any()):
+            flat = mask & ~repeat
+            ep = torch.arange(E, device=device).unsqueeze(-1).expand_as(flat)[flat]
+            qt, mask = self._pad(qt[flat], ep, E)
+        self.q, self.tcp, self.mask = qt[..., :3].contiguous(), qt[..., 3:6].contiguous(), mask
+        self.num_nodes = mask.sum(-1)
+        q, tcp = self.q, self.tcp
+
+        self.distance = torch.cdist(tcp, tcp)
+        pair = mask.unsqueeze(1) & mask.unsqueeze(2)
+        eye = torch.eye(q.shape[1], dtype=torch.bool, device=device)
+        self.candidates = pair & ~eye & (self.distance <= self.d)
+        self.checked = torch.zeros_like(self.candidates)
+        self.colliding = torch.zeros_like(self.candidates)
+        # candidate costs with the edges known to collide at inf, updated in
+        # place by check_edges (a where over [E, N, N] is too slow to redo per search)
+        self._optimistic = torch.where(self.candidates, self.distance, math.inf)
+        if not lazy:
+            self.check_edges()
+
+    @staticmethod
+    def _pad(values: torch.Tensor, episode: torch.Tensor, E: int) -> tuple[torch.Tensor, torch.Tensor]:
+        # flat rows sorted by episode -> [E, N, ...] padded, and the mask
+        counts = torch.bincount(episode, minlength=E)
+        N = max(int(counts.max()), 1) if counts.numel() else 1
+        first = torch.cumsum(counts, 0) - counts
+        pos = torch.arange(values.shape[0], device=values.device) - first[episode]
+        out = values.new_zeros(E, N, *values.shape[1:])
+        out[episode, pos] = values
+        mask = torch.zeros(E, N, dtype=torch.bool, device=values.device)
+        mask[episode, pos] = True
+        return out, mask
+
+    # ------------------------------------------------------------------ edges
+    def check_edges(
+        self, episode: torch.Tensor | None = None, i: torch.Tensor | None = None, j: torch.Tensor | None = None
+    ) -> int:
+        """Run the subdivision check on unchecked candidate edges, all in one batch.
+
+        Args:
+            episode, i, j: long ``[K]`` edges ``(episode, i, j)`` to check, in
+                either direction, repeats allowed; pairs that are no candidate
+                or already checked are skipped. All unchecked candidates when None.
+
+        Returns:
+            the number of (undirected) edges checked.
+        """
+        N = self.q.shape[1]
+        if episode is None:
+            episode, i, j = torch.triu(self.candidates & ~self.checked, diagonal=1).nonzero(as_tuple=True)
+        else:
+            if i is None or j is None or not (episode.shape == i.shape == j.shape):
+                raise ValueError("episode, i and j must be long tensors of one shape [K]")
+            keep = self.candidates[episode, i, j] & ~self.checked[episode, i, j]
+            lo, hi = torch.minimum(i, j)[keep], torch.maximum(i, j)[keep]
+            key = torch.unique((episode[keep] * N + lo) * N + hi)
+            episode, i, j = key // (N * N), (key // N) % N, key % N
+        if episode.numel() == 0:
+            return 0
+        rho_i = rho_j = None
+        if self.certify:
+            if self._radius is None:
+                E, N = self.mask.shape
+                box = self.obstacle.unsqueeze(1).expand(E, N, 6).reshape(-1, 6)
+                self._radius = clearance_radius(self.env, self.q.reshape(-1, 3), box).reshape(E, N)
+            rho_i, rho_j = self._radius[episode, i], self._radius[episode, j]
+        free = segment_collision_free(
+            self.env, self.q[episode, i], self.q[episode, j], self.obstacle[episode], self.step_size,
+            certify=self.certify, rho_from=rho_i, rho_to=rho_j,
+        )
+        e2, a, b = torch.cat([episode, episode]), torch.cat([i, j]), torch.cat([j, i])
+        self.checked[e2, a, b] = True
+        hit = ~torch.cat([free, free])
+        self.colliding[e2, a, b] = hit
+        self._optimistic[e2[hit], a[hit], b[hit]] = math.inf
+        return int(episode.numel())
+
+    @property
+    def adjacency(self) -> torch.Tensor:
+        """bool ``[E, N, N]``: candidate edges checked and collision-free."""
+        return self.candidates & self.checked & ~self.colliding
+
+    @property
+    def weights(self) -> torch.Tensor:
+        """``[E, N, N]`` edge costs (TCP distance) of :attr:`adjacency`, ``inf`` elsewhere."""
+        return torch.where(self.adjacency, self.distance, math.inf)
+
+    @property
+    def optimistic_weights(self) -> torch.Tensor:
+        """``[E, N, N]`` edge costs of the candidates not known to collide (unchecked ones count as free).
+
+        The tensor is the roadmap's own, updated by :meth:`check_edges`: read, don't write.
+        """
+        return self._optimistic
+
+    @property
+    def num_episodes(self) -> int:
+        return self.q.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.q.device
+
+    # ---------------------------------------------------------------- queries
+    def nearest_goal_node(self) -> torch.Tensor:
+        """long ``[E]``: the node of each episode whose TCP is nearest its real goal."""
+        dist = (self.tcp - self.goal.unsqueeze(1)).norm(dim=-1)
+        return dist.masked_fill(~self.mask, math.inf).argmin(-1)
+
+    def queries(
+        self, n_pairs: int = 10, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Start/goal queries: each episode's own, then ``n_pairs`` random node pairs.
+
+        Random pairs draw the start uniformly among an episode's nodes and the
+        goal uniformly among the others (episodes with one node get none). Each
+        episode's own query goes from its first state to the node nearest its
+        real goal (that node *is* the goal when the episode reached it), unless
+        the two coincide.
+
+        Args:
+            n_pairs: random pairs per episode (>= 0).
+            generator: torch generator of the draw (on any device).
+
+        Returns:
+            ``(episode, start, goal)``, each long ``[Q]``, on the roadmap's device,
+            grouped by episode, each episode's own query first.
+        """
+        if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
+            raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
+        E, device = self.num_episodes, self.device
+        n = self.num_nodes.unsqueeze(-1)
+        start = torch.zeros(E, n_pairs + 1, dtype=torch.long, device=device)
+        goal = self.nearest_goal_node().unsqueeze(-1).repeat(1, n_pairs + 1)
+        if n_pairs:
+            gdev = generator.device if generator is not None else device
+            u = torch.rand(2, E, n_pairs, generator=generator, device=gdev).to(device)
+            s = (u[0] * n).long().clamp(max=n - 1)
+            # goal = start + an offset in 1..n-1, so that it differs from the start
+            offset = 1 + (u[1] * (n - 1)).long().clamp(max=(n - 2).clamp(min=0))
+            start[:, 1:] = s
+            goal[:, 1:] = (s + offset) % n.clamp(min=1)
+        episode = torch.arange(E, device=device).unsqueeze(-1).expand_as(start)
+        ok = start != goal
+        return episode[ok], start[ok], goal[ok]
