@@ -1,0 +1,299 @@
+"""SILPLoss: the paper's eqs. 5-7 by hand, gradient routing, demo-free batches, SAC / DDPG / TD3."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import Actor, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
+
+from torchrl_silp import UR5eReachEnv
+from torchrl_silp.objectives import SILPLoss
+
+N = 8
+IS_DEMO = [True, True, True, True, True, True, False, False]
+
+
+class Critic(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(18, 32), nn.Tanh(), nn.Linear(32, 1))
+
+    def forward(self, obs, act):
+        return self.net(torch.cat([obs, act], -1))
+
+
+def spec():
+    return Bounded(-1.0, 1.0, (3,))
+
+
+def ddpg_parts():
+    actor = Actor(nn.Sequential(nn.Linear(15, 32), nn.Tanh(), nn.Linear(32, 3), nn.Tanh()), in_keys=["observation"])
+    critic = ValueOperator(Critic(), in_keys=["observation", "action"])
+    return actor, critic
+
+
+def sac_actor():
+    net = nn.Sequential(nn.Linear(15, 32), nn.Tanh(), nn.Linear(32, 6), NormalParamExtractor())
+    return ProbabilisticActor(
+        TensorDictModule(net, ["observation"], ["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        distribution_class=TanhNormal,
+        spec=spec(),
+    )
+
+
+def make_loss(kind):
+    torch.manual_seed(0)
+    if kind == "ddpg":
+        actor, critic = ddpg_parts()
+        return DDPGLoss(actor, critic), actor
+    if kind == "td3":
+        actor, critic = ddpg_parts()
+        return TD3Loss(actor, critic, action_spec=spec()), actor
+    actor = sac_actor()
+    return SACLoss(actor, ValueOperator(Critic(), in_keys=["observation", "action"]), action_spec=spec()), actor
+
+
+@pytest.fixture(scope="module")
+def env():
+    return UR5eReachEnv(num_envs=N, seed=0)
+
+
+def make_batch(env, seed=0, demos=IS_DEMO):
+    obs = env.reset()["observation"]
+    gen = torch.Generator().manual_seed(seed)
+    action = torch.rand(N, 3, generator=gen) * 2 - 1
+    nxt = env.transition(obs, action)
+    reward = env.reward(obs, nxt)
+    # stored rewards the model could not produce: the filter must read them, not recompute them
+    reward[1] = 5.0
+    reward[2] = -50.0
+    false = torch.zeros(N, 1, dtype=torch.bool)
+    return TensorDict(
+        observation=obs,
+        action=action,
+        is_demo=torch.tensor(demos).unsqueeze(-1),
+        next=TensorDict(observation=nxt, reward=reward, done=false, terminated=false, batch_size=[N]),
+        batch_size=[N],
+    )
+
+
+# ------------------------------------------------------------- by hand
+def hand_policy(actor, s):
+    """π(s) of one state: the deterministic actor's output or the TanhNormal's deterministic sample."""
+    td = TensorDict(observation=s.unsqueeze(0), batch_size=[1])
+    with torch.no_grad():
+        if isinstance(actor, ProbabilisticActor):
+            return actor.get_dist(td).deterministic_sample[0]
+        return actor(td)["action"][0]
+
+
+def hand_return(env, actor, r0, s1, k, gamma):
+    """Eq. 7: r_0 + sum_j gamma^j f_r(s_j, pi(s_j)), states through f_s, one step at a time."""
+    ret, state = float(r0), s1
+    for j in range(1, k + 1):
+        nxt = env.transition(state, hand_policy(actor, state))
+        ret += gamma**j * float(env.reward(state, nxt))
+        state = nxt
+    return ret
+
+
+def hand_q(loss, s, a):
+    """min over the loss's Q ensemble (one member for DDPG) of Q(s, a), member by member."""
+    name = "qvalue_network" if hasattr(loss, "qvalue_network") else "value_network"
+    net, params = getattr(loss, name), getattr(loss, f"{name}_params").detach()
+    members = [params[j] for j in range(params.batch_size[0])] if params.batch_dims else [params]
+    values = []
+    for p in members:
+        with p.to_module(net), torch.no_grad():
+            td = TensorDict(observation=s.unsqueeze(0), action=a.unsqueeze(0), batch_size=[1])
+            values.append(float(net(td)["state_action_value"]))
+    return min(values)
+
+
+def hand_bc(env, loss, actor, data, filt, k, gamma, lambda2):
+    total, passed, demos, returns = 0.0, [], 0, []
+    for i in range(N):
+        if not bool(data["is_demo"][i]):
+            continue
+        demos += 1
+        s, a = data["observation"][i], data["action"][i]
+        pi = hand_policy(actor, s)
+        if filt == "reward":
+            r_demo = hand_return(env, actor, data["next", "reward"][i], data["next", "observation"][i], k, gamma)
+            s1 = env.transition(s, pi)
+            r_pi = hand_return(env, actor, env.reward(s, s1), s1, k, gamma)
+            keep = r_demo > r_pi
+            returns.append((r_demo, r_pi))
+        else:
+            keep = hand_q(loss, s, a) > hand_q(loss, s, pi)
+        passed.append(keep)
+        total += float(keep) * float(((pi - a) ** 2).sum())
+    return lambda2 * total / demos, passed, returns
+
+
+@pytest.mark.parametrize(
+    "kind,filt,k",
+    [("ddpg", "reward", 1), ("ddpg", "reward", 2), ("sac", "reward", 2), ("ddpg", "q", 1), ("sac", "q", 1)],
+)
+def test_bc_term_matches_hand_computation(env, kind, filt, k):
+    rl_loss, actor = make_loss(kind)
+    gamma = 0.9
+    silp = SILPLoss(rl_loss, env, filter=filt, k=k, gamma=gamma, lambda1=0.5, lambda2=3.0)
+    data = make_batch(env)
+    want, passed, returns = hand_bc(env, rl_loss, actor, data, filt, k, gamma, 3.0)
+    loss_bc, meta = silp.bc_loss(data.clone())
+    torch.testing.assert_close(loss_bc, torch.tensor(want), rtol=1e-5, atol=1e-6)
+    mask = silp.bc_filter(data.clone())[: sum(IS_DEMO)]
+    assert mask.tolist() == passed
+    assert 0 < sum(passed) < len(passed), "the batch should exercise both filter outcomes"
+    if filt == "reward":
+        assert passed[1:3] == [True, False]  # stored +5 always wins, stored -50 always loses
+        r_demo, r_pi = silp.lookahead_returns(data.clone())
+        torch.testing.assert_close(r_demo[:6], torch.tensor([r[0] for r in returns]), rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(r_pi[:6], torch.tensor([r[1] for r in returns]), rtol=1e-5, atol=1e-5)
+    assert float(meta["num_demos"]) == sum(IS_DEMO)
+    torch.testing.assert_close(meta["bc_filter_fraction"], torch.tensor(sum(passed) / len(passed)))
+
+
+def test_forward_scales_rl_terms_and_adds_bc(env):
+    rl_loss, actor = make_loss("ddpg")
+    silp = SILPLoss(rl_loss, env, filter="none", lambda1=0.25, lambda2=2.0)
+    SoftUpdate(silp.rl_loss, tau=0.01)
+    data = make_batch(env)
+    ref = rl_loss(data.clone())
+    out = silp(data.clone())
+    for key in ("loss_actor", "loss_value"):
+        torch.testing.assert_close(out[key], 0.25 * ref[key])
+    # filter "none": every demo counts, so bc_mse is the unweighted mean and loss_bc = lambda2 * it
+    errors = [float(((hand_policy(actor, data["observation"][i]) - data["action"][i]) ** 2).sum()) for i in range(6)]
+    torch.testing.assert_close(out["bc_mse"], torch.tensor(sum(errors) / 6))
+    torch.testing.assert_close(out["loss_bc"], 2.0 * out["bc_mse"])
+    assert float(out["bc_filter_fraction"]) == 1.0
+    for key in ("bc_mse", "bc_filter_fraction", "num_demos"):
+        assert not out[key].requires_grad
+    assert set(silp.out_keys) >= {"loss_bc", "loss_actor", "loss_value", "bc_mse"}
+    assert {"is_demo", ("next", "observation"), ("next", "reward")} <= set(SILPLoss(rl_loss, env).in_keys)
+
+
+def _grads(params):
+    return [p.grad for p in params.values(True, True)]
+
+
+@pytest.mark.parametrize("kind,filt", [("ddpg", "reward"), ("sac", "q"), ("td3", "q")])
+def test_bc_gradient_reaches_actor_only(env, kind, filt):
+    rl_loss, _ = make_loss(kind)
+    silp = SILPLoss(rl_loss, env, filter=filt)
+    data = make_batch(env)
+    loss_bc, _ = silp.bc_loss(data)
+    assert loss_bc > 0
+    loss_bc.backward()
+    actor_grads = _grads(rl_loss.actor_network_params)
+    assert all(g is not None for g in actor_grads) and any(g.abs().sum() > 0 for g in actor_grads)
+    critic = rl_loss.qvalue_network_params if kind != "ddpg" else rl_loss.value_network_params
+    assert all(g is None or not g.any() for g in _grads(critic))
+    if kind == "sac":
+        assert rl_loss.log_alpha.grad is None
+
+
+@pytest.mark.parametrize("filt", ["reward", "q", "none"])
+@pytest.mark.parametrize("demos", ["all_false", "missing"])
+def test_demo_free_batch_gives_zero(env, filt, demos):
+    rl_loss, _ = make_loss("sac")
+    silp = SILPLoss(rl_loss, env, filter=filt)
+    SoftUpdate(silp.rl_loss, tau=0.01)
+    data = make_batch(env, demos=[False] * N)
+    if demos == "missing":
+        del data["is_demo"]
+    out = silp(data)
+    assert float(out["loss_bc"].detach()) == 0.0 and float(out["num_demos"]) == 0.0
+    assert float(out["bc_filter_fraction"]) == 0.0 and float(out["bc_mse"]) == 0.0
+    total = sum(v for k, v in out.items() if k.startswith("loss_"))
+    assert torch.isfinite(total)
+    total.backward()
+    assert all(torch.isfinite(g).all() for g in _grads(rl_loss.actor_network_params) if g is not None)
+
+
+@pytest.mark.parametrize("kind", ["sac", "ddpg", "td3"])
+def test_one_optimisation_step(kind):
+    env = UR5eReachEnv(num_envs=4, seed=1)
+    rl_loss, _ = make_loss(kind)
+    silp = SILPLoss(rl_loss, env, filter="reward", lambda2=2.0)
+    updater = SoftUpdate(silp.rl_loss, tau=0.5)
+    optim = torch.optim.Adam(silp.parameters(), lr=1e-2)
+    # every trainable tensor of the wrapped loss, nothing else (no target nets, no lambdas)
+    assert {id(p) for p in silp.parameters()} == {id(p) for p in rl_loss.parameters()}
+    with set_exploration_type(ExplorationType.RANDOM):
+        data = env.rollout(4).reshape(-1)
+    data["is_demo"] = torch.arange(16).unsqueeze(-1) % 2 == 0
+    before = [p.detach().clone() for p in rl_loss.actor_network_params.values(True, True)]
+    target = rl_loss.target_qvalue_network_params if kind != "ddpg" else rl_loss.target_value_network_params
+    target_before = [p.clone() for p in target.values(True, True)]
+    out = silp(data)
+    total = sum(v for k, v in out.items() if k.startswith("loss_"))
+    optim.zero_grad()
+    total.backward()
+    optim.step()
+    updater.step()
+    assert all(torch.isfinite(v).all() for v in out.values(True, True) if isinstance(v, torch.Tensor))
+    after = list(rl_loss.actor_network_params.values(True, True))
+    assert any(not torch.equal(b, a) for b, a in zip(before, after))
+    assert any(not torch.equal(b, a) for b, a in zip(target_before, target.values(True, True)))
+    assert float(out["num_demos"]) == 8
+
+
+def test_gamma_defaults_to_wrapped_loss():
+    rl_loss, _ = make_loss("ddpg")
+    silp = SILPLoss(rl_loss, filter="none")
+    assert float(silp.gamma) == pytest.approx(0.99)
+    silp.make_value_estimator(gamma=0.5)
+    assert float(silp.gamma) == pytest.approx(0.5)
+    assert SILPLoss(rl_loss, filter="none", gamma=0.7).gamma == 0.7
+
+
+def test_set_keys_forwards_and_rebuilds_in_keys(env):
+    rl_loss, _ = make_loss("sac")
+    silp = SILPLoss(rl_loss, env)
+    silp.set_keys(is_demo="demo_flag", reward="r")
+    assert "demo_flag" in silp.in_keys and ("next", "r") in silp.in_keys
+    assert rl_loss.tensor_keys.reward == "r"
+    with pytest.raises(ValueError, match="accepted"):
+        silp.set_keys(nonsense="x")
+
+
+def test_lambdas_are_schedulable(env):
+    rl_loss, _ = make_loss("ddpg")
+    silp = SILPLoss(rl_loss, env, filter="none")
+    SoftUpdate(silp.rl_loss, tau=0.01)
+    silp.lambda2 = 0.0
+    assert float(silp(make_batch(env))["loss_bc"].detach()) == 0.0
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(filter="reward"), "needs env"),
+        (dict(filter="bogus"), "filter must be one of"),
+        (dict(filter="none", k=0), "k must be"),
+        (dict(filter="none", k=1.5), "k must be"),
+        (dict(filter="none", lambda1=-1.0), "lambda1"),
+        (dict(filter="none", lambda2=float("nan")), "lambda2"),
+        (dict(filter="none", gamma=1.5), "gamma"),
+    ],
+)
+def test_bad_configuration_raises(kwargs, match):
+    rl_loss, _ = make_loss("ddpg")
+    with pytest.raises(ValueError, match=match):
+        SILPLoss(rl_loss, **kwargs)
+
+
+def test_bad_env_and_loss_raise():
+    rl_loss, _ = make_loss("ddpg")
+    with pytest.raises(ValueError, match="transition"):
+        SILPLoss(rl_loss, object(), filter="reward")
+    with pytest.raises(TypeError, match="LossModule"):
+        SILPLoss(nn.Linear(2, 2), filter="none")
