@@ -16,7 +16,15 @@ from torchrl.record.loggers import get_logger
 from torchrl_silp.eval import evaluate
 from torchrl_silp.viz import save_rollout_png
 
+from torchrl_silp.envs import COLLISION_TYPES
+from torchrl_silp.objectives import BC_FILTERS
+from torchrl_silp.planning import SEARCH_METHODS
+
 from utils import (
+    ALGORITHMS,
+    EXPLORATION_MODES,
+    LOGGER_BACKENDS,
+    check_choice,
     EpisodeAssembler,
     checkpoint_exists,
     load_checkpoint,
@@ -54,6 +62,16 @@ def validate(cfg: DictConfig) -> None:
             f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple of "
             f"env.num_envs ({cfg.env.num_envs})"
         )
+    choices = {
+        "algorithm": (cfg.algorithm, ALGORITHMS),
+        "exploration.mode": (cfg.exploration.mode, EXPLORATION_MODES),
+        "silp.filter": (cfg.silp.filter, BC_FILTERS),
+        "planner.method": (cfg.planner.method, SEARCH_METHODS),
+        "env.collision_type": (cfg.env.collision_type, COLLISION_TYPES),
+        "logger.backend": (cfg.logger.backend, LOGGER_BACKENDS),
+    }
+    for name, (value, allowed) in choices.items():
+        check_choice(name, value, allowed)
     if not cfg.optim.utd_ratio > 0:
         raise ValueError(f"optim.utd_ratio must be > 0, got {cfg.optim.utd_ratio!r}")
     if cfg.device not in ("cpu", "cuda", "auto") and not str(cfg.device).startswith("cuda:"):

@@ -25,6 +25,7 @@ from torchrl_silp.objectives import SILPLoss
 
 ALGORITHMS = ("sac", "ddpg", "td3")
 EXPLORATION_MODES = ("gp", "random", "none")
+LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "", None)  # "" or null: no logger
 
 
 def check_choice(name: str, value, allowed) -> None:
@@ -102,8 +103,8 @@ def make_exploration_policy(cfg, actor, env, device):
             GPGuidedExploration(
                 env.base_env,
                 mode=cfg.exploration.mode,
-                n_candidates=cfg.exploration.n_candidates,
-                max_history=cfg.env.max_steps + 1,
+                num_candidates=cfg.exploration.n_candidates,
+                history_size=cfg.env.max_steps + 1,
             ).to(device)
         )
     return TensorDictSequential(*modules) if len(modules) > 1 else actor
@@ -187,6 +188,10 @@ def make_loss(cfg, actor, critic, env):
     else:
         rl = TD3Loss(actor_network=actor, qvalue_network=critic, action_spec=env.action_spec_unbatched, loss_function="l2")
     rl.make_value_estimator(gamma=cfg.optim.gamma)
+    if cfg.algorithm == "sac":
+        # SACLoss registers its target-entropy buffer on first use: create it now, so a
+        # fresh loss and a checkpointed one have the same state_dict keys on resume
+        _ = rl.target_entropy
     updater = SoftUpdate(rl, tau=cfg.optim.tau)
     if not cfg.silp.bc:
         return rl, updater
@@ -241,8 +246,20 @@ def save_checkpoint(path: Path, state: dict, buffers: MixedReplay, assembler: Ep
         shutil.rmtree(old)
 
 
-def load_checkpoint(path: Path, buffers: MixedReplay, assembler: EpisodeAssembler) -> dict:
+def _checkpoint_dir(path: Path) -> Path | None:
+    # a run killed between the two renames of save_checkpoint left only ".old"
     path = Path(path)
+    for candidate in (path, path.with_name(path.name + ".old")):
+        if (candidate / "state.pt").exists():
+            return candidate
+    return None
+
+
+def load_checkpoint(path: Path, buffers: MixedReplay, assembler: EpisodeAssembler) -> dict:
+    found = _checkpoint_dir(path)
+    if found is None:
+        raise FileNotFoundError(f"no checkpoint under {path}")
+    path = found
     state = torch.load(path / "state.pt", weights_only=False)
     buffers.loads(path / "buffers")
     pending = path / "pending_episodes.pt"
@@ -252,7 +269,7 @@ def load_checkpoint(path: Path, buffers: MixedReplay, assembler: EpisodeAssemble
 
 
 def checkpoint_exists(path: Path) -> bool:
-    return (Path(path) / "state.pt").exists()
+    return _checkpoint_dir(path) is not None
 
 
 # ------------------------------------------------------------------ reports

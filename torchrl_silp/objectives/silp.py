@@ -421,18 +421,25 @@ class SILPLoss(LossModule):
             if is_demo.dtype != torch.bool:
                 raise TypeError(f"{keys.is_demo!r} must be a bool tensor, got {is_demo.dtype}")
             is_demo = is_demo.reshape(n)
-        pi = self._policy_action(td)
-        sq_err = (pi - a_demo.detach()).pow(2).sum(-1)
-        passed = self.bc_filter(td, pi) & is_demo
-        # masks, not indexing: no host sync, and a demo-free batch is a 0 / 1
+        # only the demo rows need the actor's action and the filter's look-ahead:
+        # at the paper's N_D / (N_D + N_pi) = 1/4 that is 4x less model work than
+        # masking a full batch (one host sync for the row count)
+        rows = is_demo.nonzero().squeeze(-1)
+        if rows.numel() == 0:
+            zero = torch.zeros((), dtype=a_demo.dtype, device=a_demo.device)
+            return zero, {"bc_filter_fraction": zero, "bc_mse": zero, "num_demos": zero}
+        demos = td[rows]
+        pi = self._policy_action(demos)
+        sq_err = (pi - demos.get(keys.action).detach()).pow(2).sum(-1)
+        passed = self.bc_filter(demos, pi)
         zero = torch.zeros((), dtype=sq_err.dtype, device=sq_err.device)
-        num_demos = is_demo.sum().to(sq_err.dtype)
+        num_demos = torch.tensor(float(rows.numel()), dtype=sq_err.dtype, device=sq_err.device)
         denom = num_demos.clamp_min(1.0)
         loss_bc = self.lambda2.to(sq_err.dtype) * torch.where(passed, sq_err, zero).sum() / denom
         with torch.no_grad():
             metadata = {
                 "bc_filter_fraction": passed.sum().to(sq_err.dtype) / denom,
-                "bc_mse": torch.where(is_demo, sq_err, zero).sum() / denom,
+                "bc_mse": sq_err.sum() / denom,
                 "num_demos": num_demos,
             }
         return loss_bc, {key: value.detach() for key, value in metadata.items()}
