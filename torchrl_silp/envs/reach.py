@@ -228,7 +228,8 @@ class UR5eReachEnv(EnvBase):
             )
         batch = torch.broadcast_shapes(q3.shape[:-1], obstacle.shape[:-1])
         q = q3.to(self.dtype).expand(*batch, 3).reshape(-1, 3)
-        box = obstacle.to(self.dtype).expand(*batch, 6).reshape(-1, 6)
+        # contiguous: an expanded (stride-0) box would recompile the compiled kernel per layout
+        box = obstacle.to(self.dtype).expand(*batch, 6).reshape(-1, 6).contiguous()
         flags, tcp = self._kernel(q, box)
         return flags.reshape(*batch, 1), tcp.reshape(*batch, 3)
 
