@@ -47,8 +47,27 @@ def make_env(cfg, device, seed: int) -> TransformedEnv:
 
 
 # --------------------------------------------------------------------- models
-def _mlp(cfg, out_features: int, device) -> MLP:
-    return MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=nn.ReLU, device=device)
+class GoalRelativeMLP(nn.Module):
+    """An MLP that also sees the TCP-to-goal vector of the observation.
+
+    The 15-D observation holds the TCP (3:6) and the goal (12:15) separately;
+    success is decided at the 5 cm scale of their difference, which an MLP
+    must otherwise learn to subtract. The difference is appended to the
+    inputs (observation first, then any further input such as the action).
+    """
+
+    def __init__(self, mlp: nn.Module):
+        super().__init__()
+        self.mlp = mlp
+
+    def forward(self, observation: torch.Tensor, *others: torch.Tensor) -> torch.Tensor:
+        to_goal = observation[..., 12:15] - observation[..., 3:6]
+        return self.mlp(observation, to_goal, *others)
+
+
+def _mlp(cfg, out_features: int, device) -> nn.Module:
+    mlp = MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=nn.ReLU, device=device)
+    return GoalRelativeMLP(mlp) if cfg.network.goal_relative else mlp
 
 
 def make_actor_critic(cfg, env, device):
