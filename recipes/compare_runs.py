@@ -30,7 +30,8 @@ import numpy as np
 def parse_group(text: str) -> tuple[str, list[Path]]:
     if "=" not in text:
         raise argparse.ArgumentTypeError(f"--group must be LABEL=GLOB, got {text!r}")
-    label, pattern = text.split("=", 1)
+    # the last "=": labels may hold config overrides (key=value), run paths seldom do
+    label, _, pattern = text.rpartition("=")
     runs = sorted(Path(p) for p in glob.glob(pattern) if (Path(p) / "summary.json").exists())
     return label, runs
 
@@ -97,7 +98,7 @@ def plot(groups: dict[str, list[tuple[dict, list[dict]]]], path: Path) -> None:
     ax.set_ylabel("success rate on the 1000 test tasks")
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right")
+    ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
