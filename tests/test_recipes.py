@@ -85,6 +85,18 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         assert (scalars / "train" / "loss_bc.csv").exists()
     printed = proc.stdout
     assert "success_rate" in printed and "planning_share" in printed
+    if script == "sac_silp.py" and demos:
+        # the failure analysis reads the same checkpoint and agrees with the run's own evaluation
+        diag = subprocess.run(
+            [sys.executable, str(RECIPES / "diagnose.py"), str(run_dir), *TINY],
+            cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        )
+        assert diag.returncode == 0, diag.stderr[-3000:]
+        first = diag.stdout.splitlines()[0].split()
+        assert first[:2] == ["outcomes:", "success"]
+        # diagnose.py rolls out all 1000 test tasks; the run evaluated 8 of them
+        assert 0.0 <= float(first[2]) <= 1.0
+        assert "critic on the demos buffer" in diag.stdout and "random policy" in diag.stdout
 
 
 @pytest.mark.parametrize(
