@@ -72,7 +72,10 @@ def main(argv: list[str]) -> None:
     loss.load_state_dict(torch.load(ckpt / "state.pt", weights_only=False)["loss"])
     rl = rl_loss_of(loss)
 
-    test = UR5eReachEnv(num_envs=1000, seed=DEFAULT_TEST_SEED, collision_type=0, max_steps=cfg.env.max_steps)
+    test = UR5eReachEnv(
+        num_envs=1000, seed=DEFAULT_TEST_SEED, collision_type=0, max_steps=cfg.env.max_steps,
+        workspace_exit=cfg.env.workspace_exit,
+    )
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         ro = test.rollout(cfg.env.max_steps, actor, break_when_any_done=False, break_when_all_done=True)
         done = ro["next", "done"].squeeze(-1)

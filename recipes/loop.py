@@ -16,7 +16,7 @@ from torchrl.record.loggers import get_logger
 from torchrl_silp.eval import evaluate
 from torchrl_silp.viz import save_rollout_png
 
-from torchrl_silp.envs import COLLISION_TYPES
+from torchrl_silp.envs.reach import COLLISION_TYPES, WORKSPACE_EXIT_MODES
 from torchrl_silp.objectives import BC_FILTERS
 from torchrl_silp.planning import SEARCH_METHODS
 
@@ -68,6 +68,7 @@ def validate(cfg: DictConfig) -> None:
         "silp.filter": (cfg.silp.filter, BC_FILTERS),
         "planner.method": (cfg.planner.method, SEARCH_METHODS),
         "env.collision_type": (cfg.env.collision_type, COLLISION_TYPES),
+        "env.workspace_exit": (cfg.env.workspace_exit, WORKSPACE_EXIT_MODES),
         "logger.backend": (cfg.logger.backend, LOGGER_BACKENDS),
     }
     for name, (value, allowed) in choices.items():
@@ -149,7 +150,7 @@ def train(cfg: DictConfig) -> dict:
 
     def run_eval():
         metrics = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,
-                           device=device)
+                           workspace_exit=cfg.env.workspace_exit, device=device)
         point = {"frames": counters["frames"], "episodes": counters["episodes"],
                  "train_wall_s": counters["train_wall_s"], **metrics}
         history.append(point)
@@ -217,7 +218,7 @@ def train(cfg: DictConfig) -> dict:
     pbar.close()
 
     final, rollout = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,
-                              device=device, return_rollout=True)
+                              workspace_exit=cfg.env.workspace_exit, device=device, return_rollout=True)
     if not history or history[-1]["frames"] != counters["frames"]:
         history.append({"frames": counters["frames"], "episodes": counters["episodes"],
                         "train_wall_s": counters["train_wall_s"], **final})

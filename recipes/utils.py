@@ -41,6 +41,7 @@ def make_env(cfg, device, seed: int) -> TransformedEnv:
         seed=seed,
         max_steps=cfg.env.max_steps,
         collision_type=cfg.env.collision_type,
+        workspace_exit=cfg.env.workspace_exit,
         device=device,
     )
     return TransformedEnv(base, Compose(InitTracker(), RewardSum()))

@@ -8,6 +8,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from torchrl_silp import CollisionReason, UR5eReachEnv
+from torchrl_silp.geometry import in_box
 
 
 @pytest.mark.parametrize("batch_size", [(), (1,), (64,), (2, 3)])
@@ -167,6 +168,38 @@ def test_workspace_exit_is_a_collision():
             break
     flags = env.collision_flags(q, FAR_BOX)
     assert flags.item() & CollisionReason.WORKSPACE
+
+
+@pytest.mark.parametrize("collision_type", [0, 2])
+def test_workspace_exit_blocked(collision_type):
+    # from HOME, lifting the shoulder moves the TCP up and back: walk to the step that leaves the workspace
+    env, td = _env_at(HOME, HOME + 0.3, FAR_BOX, workspace_exit="block", collision_type=collision_type)
+    lift = torch.tensor([[0.0, -1.0, 0.0]])
+    for _ in range(40):
+        inside = env.transition(td["observation"], lift)
+        if not in_box(env.robot.fk(env._q + lift * env.ACTION_SCALE), env.workspace_low, env.workspace_high).item():
+            break
+        td["action"] = lift
+        td = env.step(td)["next"].clone()
+    else:
+        pytest.fail("the shoulder lift never left the workspace")
+    before = env._q.clone()
+    td["action"] = lift
+    out = env.step(td)["next"]
+    # not taken: the arm stays, no collision, no termination, reward -distance
+    assert torch.equal(env._q, before)
+    assert not out["collision"].item() and not out["terminated"].item()
+    dist = (env._tcp - env._goal).norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(out["reward"], -dist)
+    # the pure model agrees with the step
+    torch.testing.assert_close(inside, out["observation"])
+    torch.testing.assert_close(env.reward(td["observation"], inside), out["reward"])
+    # the default still counts the exit as a collision
+    strict, td2 = _env_at(before, HOME + 0.3, FAR_BOX, collision_type=collision_type)
+    td2["action"] = lift
+    assert strict.step(td2)["next", "collision"].item()
+    with pytest.raises(ValueError, match="workspace_exit"):
+        UR5eReachEnv(workspace_exit="clip")
 
 
 def test_seeding_gives_identical_rollouts():

@@ -17,9 +17,10 @@ from torchrl_silp.geometry import (
 )
 from torchrl_silp.robot import UR5e
 
-__all__ = ["UR5eReachEnv", "COLLISION_TYPES"]
+__all__ = ["UR5eReachEnv", "COLLISION_TYPES", "WORKSPACE_EXIT_MODES"]
 
 COLLISION_TYPES = (0, 1, 2)
+WORKSPACE_EXIT_MODES = ("collision", "block")
 
 
 def _as_batch_size(num_envs, batch_size) -> torch.Size:
@@ -87,6 +88,11 @@ class UR5eReachEnv(EnvBase):
             steps on CPU, for a one-off compile of ~40 s (cached on disk after).
             (TorchRL's own ``compile=`` kwarg of every env compiles
             ``step_and_maybe_reset`` as a whole; it is popped by ``EnvBase``.)
+        workspace_exit: ``"collision"`` (default): a step that takes the TCP out of the
+            workspace is a collision (-10, handled by ``collision_type``). ``"block"``:
+            such a step is not taken (the arm stays where it is, no collision, the
+            usual -distance reward), in :meth:`transition` as in :meth:`step` — the
+            paper's "workspace restricted to avoid needless collisions" read literally.
 
     Examples:
         >>> from torchrl_silp import UR5eReachEnv
@@ -127,6 +133,7 @@ class UR5eReachEnv(EnvBase):
         robot: UR5e | None = None,
         dtype: torch.dtype = torch.float32,
         compile_collision: bool = False,
+        workspace_exit: str = "collision",
     ):
         batch = _as_batch_size(num_envs, batch_size)
         if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
@@ -142,6 +149,9 @@ class UR5eReachEnv(EnvBase):
         self.max_steps = max_steps
         self.collision_type = collision_type
         self.success_distance = float(success_distance)
+        if workspace_exit not in WORKSPACE_EXIT_MODES:
+            raise ValueError(f"workspace_exit must be one of {WORKSPACE_EXIT_MODES}, got {workspace_exit!r}")
+        self.workspace_exit = workspace_exit
         self.dtype = dtype
         if robot is None:
             robot = UR5e(device=device, dtype=dtype)
@@ -328,7 +338,15 @@ class UR5eReachEnv(EnvBase):
         """
         self._check_obs(obs, "obs")
         q_next = self._next_q(obs[..., :3], action)
-        return torch.cat([q_next, self.robot.fk(q_next), obs[..., 6:]], dim=-1)
+        tcp = self.robot.fk(q_next)
+        if self.workspace_exit == "block":
+            q_next, tcp = self._block_workspace_exit(obs[..., :3], obs[..., 3:6], q_next, tcp)
+        return torch.cat([q_next, tcp, obs[..., 6:]], dim=-1)
+
+    def _block_workspace_exit(self, q, tcp, q_next, tcp_next):
+        # workspace_exit="block": a step that would take the TCP out of the workspace is not taken
+        out = ~in_box(tcp_next, self.workspace_low, self.workspace_high).unsqueeze(-1)
+        return torch.where(out, q, q_next), torch.where(out, tcp, tcp_next)
 
     def reward(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         """The reward ``f_r`` ``(..., 1)`` of moving from ``obs`` to ``next_obs``.
@@ -479,6 +497,11 @@ class UR5eReachEnv(EnvBase):
         action = action.to(self.dtype)
         q_next = self._next_q(self._q, action)
         flags, tcp = self._flags_and_tcp(q_next, self._obstacle)
+        if self.workspace_exit == "block":
+            # the step is not taken; the state it started from is collision-free
+            out = (flags & CollisionReason.WORKSPACE) != 0
+            q_next, tcp = torch.where(out, self._q, q_next), torch.where(out, self._tcp, tcp)
+            flags = torch.where(out, torch.zeros_like(flags), flags)
         reward, collision, success, flags = self._score(flags, tcp, self._goal)
         if self.collision_type == 0:
             self._q, self._tcp = q_next, tcp
