@@ -1,0 +1,97 @@
+"""Where a training iteration's time goes: one gradient update of the recipe's loss, by part.
+
+Builds the loss, optimisers and buffers exactly as ``recipes/sac_silp.py`` does
+(same config, any hydra overrides), fills the buffers from a short rollout and
+its planned demonstrations, then times (median of ``--reps`` calls):
+
+* ``sample``: one ``MixedReplay.sample`` (N_D demos + N_pi interaction transitions);
+* ``rl loss``: the wrapped actor-critic loss's forward (SAC: actor, 2 Q-nets, target);
+* ``bc loss``: the SILP+ term's forward (actor on the demo rows + the reward filter's
+  look-ahead through the env model);
+* ``update``: forward + backward + every optimiser step + the soft target update.
+
+Run::
+
+    python benchmarks/update_step.py                       # SAC-SILP+, the default config
+    python benchmarks/update_step.py silp.bc=false silp.demos=false   # plain SAC
+    python benchmarks/update_step.py --threads 1 optim.batch_size=512
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+
+RECIPES = Path(__file__).parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+from utils import make_actor_critic, make_buffers, make_env, make_loss, make_optimizers  # noqa: E402
+
+from torchrl_silp.objectives import SILPLoss  # noqa: E402
+
+
+def median_ms(fn, reps: int) -> float:
+    fn()
+    times = []
+    for _ in range(reps):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--reps", type=int, default=50)
+    parser.add_argument("overrides", nargs="*", help="hydra overrides of recipes/config/sac_silp.yaml")
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
+        cfg = compose(config_name="sac_silp", overrides=args.overrides)
+    device = torch.device("cpu")
+    env = make_env(cfg, device, seed=0)
+    actor, critic = make_actor_critic(cfg, env, device)
+    loss, updater = make_loss(cfg, actor, critic, env)
+    optimizers = make_optimizers(cfg, loss)
+    buffers = make_buffers(cfg, env, device)
+    with torch.no_grad():
+        episodes = env.rollout(cfg.env.max_steps, break_when_any_done=False)
+    buffers.extend(episodes)
+    if cfg.silp.demos:
+        buffers.demo_buffer.extend(episodes)
+    batch = buffers.sample()
+
+    def update():
+        out = loss(batch)
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        for opt in optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        updater.step()
+
+    figures = {"sample": median_ms(buffers.sample, args.reps)}
+    if isinstance(loss, SILPLoss):
+        figures["rl loss"] = median_ms(lambda: loss.rl_loss(batch), args.reps)
+        figures["bc loss"] = median_ms(lambda: loss.bc_loss(batch), args.reps)
+    else:
+        figures["rl loss"] = median_ms(lambda: loss(batch), args.reps)
+    figures["update"] = median_ms(update, args.reps)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}, "
+          f"{os.cpu_count()} CPUs; batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, "
+          f"overrides {args.overrides or 'none'}")
+    for name, ms in figures.items():
+        print(f"{name:>8s}: {ms:7.2f} ms")
+    return figures
+
+
+if __name__ == "__main__":
+    main()
