@@ -15,15 +15,9 @@ import math
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_silp.planning.edges import clearance_radius, segment_collision_free
+from torchrl_silp.planning.edges import _check_positive, clearance_radius, segment_collision_free
 
 __all__ = ["ExperienceRoadmap", "split_episodes"]
-
-def _check_positive(name: str, value, unit: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0 or not math.isfinite(value):
-        raise ValueError(f"{name} must be a positive finite number of {unit}, got {value!r}")
-    return float(value)
-
 
 def split_episodes(episodes: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
     """Episode boundaries of a rollout batch.
