@@ -312,21 +312,19 @@ class GPGuidedExploration(TensorDictModuleBase):
 
     GP library: plain torch, not gpytorch, chosen by
     ``benchmarks/gp_exploration.py`` (fit + posterior mean of B GPs, 50
-    history points, 64 candidates, float32, CPU, 1 thread; a shared 2-core
-    machine under load, so the ratios, stable over three runs, say more than
-    the absolute figures):
+    history points, 64 candidates, float32, CPU, 1 thread; docs/results.md):
 
     ============================  ==========  =============
     B, hyper-parameters           torch (ms)  gpytorch (ms)
     ============================  ==========  =============
-    1, fixed                      1.1         11.7
-    64, fixed                     7.1         29.9
-    1, fitted (10 Adam steps)     15.9        54.9
-    64, fitted (10 Adam steps)    137         265
+    1, fixed                      0.62        11.1
+    64, fixed                     5.1         23.9
+    1, fitted (10 Adam steps)     12.8        51.5
+    64, fitted (10 Adam steps)    74.4        124
     ============================  ==========  =============
 
-    Torch is 4-11x faster with fixed hyper-parameters (the default) and about
-    2x faster when fitting (with the closed-form gradient of
+    Torch is 4.7-18x faster with fixed hyper-parameters (the default) and
+    1.7-4x faster when fitting (with the closed-form gradient of
     :func:`gp_nll_gradient`; back-propagating through the Cholesky instead
     was slower than gpytorch at B=64). At 50 points the exact solve is all the
     work there is, and gpytorch's lazy-operator machinery, built for large n,
