@@ -2,6 +2,7 @@
 
     python recipes/diagnose.py RUN_DIR [hydra overrides the run was trained with]
     python recipes/diagnose.py runs/sac_silp/seed0 network.goal_relative=true
+    python recipes/diagnose.py runs/ddpg_silp/seed0 algorithm=ddpg
 
 Loads ``RUN_DIR/checkpoint`` (networks and both buffers), rolls the
 deterministic policy out on the 1000 test tasks of ``evaluate`` and prints:
@@ -10,7 +11,7 @@ deterministic policy out on the 1000 test tasks of ``evaluate`` and prints:
 * time-outs: whether the arm came to rest (|action| and joint travel over the
   last 10 steps), its final distance to the goal, and whether one action from
   the final state could reach the goal or get closer without a collision (best
-  of ``--candidates`` random actions through the env's own model);
+  of 2,048 random actions through the env's own model);
 * the critic at those final states: Q of the policy's action, of the action
   that truly reaches furthest, and the true reward of the critic's own best action;
 * success against task geometry: box in the straight TCP path or not, joint distance;
@@ -64,7 +65,7 @@ def main(argv: list[str]) -> None:
     if not (ckpt / "state.pt").exists():
         raise FileNotFoundError(f"no checkpoint under {run_dir} (expected {ckpt / 'state.pt'})")
     with initialize_config_dir(config_dir=str(Path(__file__).parent / "config"), version_base="1.3"):
-        cfg = compose(config_name=cfg_name(overrides), overrides=[o for o in overrides if not o.startswith("+recipe=")])
+        cfg = compose(config_name="sac_silp", overrides=overrides)
     device = torch.device("cpu")
     env = make_env(cfg, device, seed=0)
     actor, critic = make_actor_critic(cfg, env, device)
@@ -148,14 +149,6 @@ def main(argv: list[str]) -> None:
                   for n in ("OBSTACLE", "TABLE", "SELF", "WORKSPACE")}
         print(f"random policy: {(flags != 0).float().mean():.3f} of steps collide; reasons "
               + ", ".join(f"{k} {v:.2f}" for k, v in shares.items()))
-
-
-def cfg_name(overrides: list[str]) -> str:
-    # "+recipe=ddpg_silp" picks the DDPG recipe's config; SAC-SILP+ otherwise
-    for o in overrides:
-        if o.startswith("+recipe="):
-            return o.split("=", 1)[1]
-    return "sac_silp"
 
 
 if __name__ == "__main__":
