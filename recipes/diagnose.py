@@ -75,7 +75,7 @@ def main(argv: list[str]) -> None:
 
     test = UR5eReachEnv(
         num_envs=1000, seed=DEFAULT_TEST_SEED, collision_type=0, max_steps=cfg.env.max_steps,
-        workspace_exit=cfg.env.workspace_exit,
+        workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         ro = test.rollout(cfg.env.max_steps, actor, break_when_any_done=False, break_when_all_done=True)

@@ -16,7 +16,7 @@ from torchrl.record.loggers import get_logger
 from torchrl_silp.eval import evaluate
 from torchrl_silp.viz import save_rollout_png
 
-from torchrl_silp.envs.reach import COLLISION_TYPES, WORKSPACE_EXIT_MODES
+from torchrl_silp.envs.reach import COLLISION_TYPES, TASK_BRANCHES, WORKSPACE_EXIT_MODES
 from torchrl_silp.objectives import BC_FILTERS
 from torchrl_silp.planning import SEARCH_METHODS
 
@@ -69,6 +69,7 @@ def validate(cfg: DictConfig) -> None:
         "planner.method": (cfg.planner.method, SEARCH_METHODS),
         "env.collision_type": (cfg.env.collision_type, COLLISION_TYPES),
         "env.workspace_exit": (cfg.env.workspace_exit, WORKSPACE_EXIT_MODES),
+        "env.task_branch": (cfg.env.task_branch, TASK_BRANCHES),
         "logger.backend": (cfg.logger.backend, LOGGER_BACKENDS),
     }
     for name, (value, allowed) in choices.items():
@@ -150,7 +151,7 @@ def train(cfg: DictConfig) -> dict:
 
     def run_eval():
         metrics = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,
-                           workspace_exit=cfg.env.workspace_exit, device=device)
+                           workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch, device=device)
         point = {"frames": counters["frames"], "episodes": counters["episodes"],
                  "train_wall_s": counters["train_wall_s"], **metrics}
         history.append(point)
@@ -218,7 +219,7 @@ def train(cfg: DictConfig) -> dict:
     pbar.close()
 
     final, rollout = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,
-                              workspace_exit=cfg.env.workspace_exit, device=device, return_rollout=True)
+                              workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch, device=device, return_rollout=True)
     if not history or history[-1]["frames"] != counters["frames"]:
         history.append({"frames": counters["frames"], "episodes": counters["episodes"],
                         "train_wall_s": counters["train_wall_s"], **final})

@@ -42,6 +42,7 @@ def make_env(cfg, device, seed: int) -> TransformedEnv:
         max_steps=cfg.env.max_steps,
         collision_type=cfg.env.collision_type,
         workspace_exit=cfg.env.workspace_exit,
+        task_branch=cfg.env.task_branch,
         device=device,
     )
     return TransformedEnv(base, Compose(InitTracker(), RewardSum()))

@@ -47,6 +47,29 @@ def test_sampled_tasks_satisfy_paper_constraints():
     assert centre[:, 0].max() - centre[:, 0].min() > 0.3
 
 
+@pytest.mark.parametrize("task_branch", ["front", "any"])
+def test_task_branch(task_branch):
+    env = UR5eReachEnv(seed=0, task_branch=task_branch)
+    t = env.sample_tasks(3000)
+    flipped = []
+    for q, tcp in ((t["q"], t["tcp"]), (t["goal_q"], t["goal"])):
+        # the TCP in the frame rotated by the pan angle: x < 0 is behind the shoulder
+        c, s = torch.cos(-q[:, 0]), torch.sin(-q[:, 0])
+        flipped.append(c * tcp[:, 0] - s * tcp[:, 1] < 0)
+    start_flipped, goal_flipped = flipped
+    if task_branch == "front":
+        assert not start_flipped.any() and not goal_flipped.any()
+    else:
+        # the flipped branch is a sizeable part of the task joint box
+        assert 0.1 < start_flipped.float().mean() < 0.3
+    # the shoulder-flipped pose (pan ~ pi, lift past vertical) is behind, the home-like one in front
+    q = torch.tensor([[2.8, -3.0, 0.9], [0.3, -1.0, 0.9]])
+    reach = UR5eReachEnv.reach_along_pan(q, env.robot.fk(q))
+    assert reach[0] < 0 < reach[1]
+    with pytest.raises(ValueError, match="task_branch"):
+        UR5eReachEnv(task_branch="back")
+
+
 def test_reset_observation_layout():
     env = UR5eReachEnv(num_envs=8, seed=1)
     td = env.reset()

@@ -24,6 +24,7 @@ def evaluate(
     max_steps: int = 50,
     collision_type: int = 0,
     workspace_exit: str = "collision",
+    task_branch: str = "front",
     device: torch.device | str | None = None,
     env: UR5eReachEnv | None = None,
     return_rollout: bool = False,
@@ -43,6 +44,7 @@ def evaluate(
         max_steps: episode length (paper: 50).
         collision_type: collision handling during the test (0, 1 or 2).
         workspace_exit: ``"collision"`` or ``"block"`` (see :class:`~torchrl_silp.UR5eReachEnv`).
+        task_branch: ``"front"`` or ``"any"``: the IK branch of the tasks (see :class:`~torchrl_silp.UR5eReachEnv`).
         device: device of the test env; defaults to the policy's parameters' device.
         env: an env to evaluate in instead (its batch size is the number of tasks).
         return_rollout: also return the rollout TensorDict ``[n_tasks, T]``.
@@ -69,7 +71,7 @@ def evaluate(
     if env is None:
         env = UR5eReachEnv(
             num_envs=n_tasks, seed=seed, max_steps=max_steps, collision_type=collision_type,
-            workspace_exit=workspace_exit, device=device,
+            workspace_exit=workspace_exit, task_branch=task_branch, device=device,
         )
     n = env.batch_size.numel()
     with set_exploration_type(ExplorationType.DETERMINISTIC):

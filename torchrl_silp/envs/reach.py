@@ -21,6 +21,7 @@ __all__ = ["UR5eReachEnv", "COLLISION_TYPES", "WORKSPACE_EXIT_MODES"]
 
 COLLISION_TYPES = (0, 1, 2)
 WORKSPACE_EXIT_MODES = ("collision", "block")
+TASK_BRANCHES = ("front", "any")
 
 
 def _as_batch_size(num_envs, batch_size) -> torch.Size:
@@ -93,6 +94,14 @@ class UR5eReachEnv(EnvBase):
             such a step is not taken (the arm stays where it is, no collision, the
             usual -distance reward), in :meth:`transition` as in :meth:`step` — the
             paper's "workspace restricted to avoid needless collisions" read literally.
+        task_branch: which inverse-kinematics branch start and goal configurations
+            are drawn from. ``"front"`` (default): the TCP lies in front of the
+            shoulder (its horizontal projection on the pan direction is positive),
+            one branch, as a physical set-up started from a home pose would be.
+            ``"any"``: the whole task joint box, which also holds the
+            shoulder-flipped branch (pan near pi, the arm reaching back over the
+            base; ~19 % of starts), this env's distribution before the option existed.
+            Only task sampling depends on it; the arm may enter either branch.
 
     Examples:
         >>> from torchrl_silp import UR5eReachEnv
@@ -112,9 +121,11 @@ class UR5eReachEnv(EnvBase):
     SUCCESS_REWARD = 1.0
     # Joint box from which start and goal configurations are drawn (then
     # rejected unless collision-free, in the workspace and d2 > d1 > d3): the
-    # shoulder pan covers the workspace's half-plane x >= 0 and the arm stays
-    # "elbow up" (lift in [-pi, 0], elbow bent one way), one IK branch, as a
-    # physical UR5e set-up would be. Actions may leave this box freely.
+    # arm stays "elbow up" (lift in [-pi, 0], elbow bent one way). The pan range
+    # is wider than the workspace's half-plane x >= 0 needs, so with a lift
+    # below -pi/2 the box also holds the shoulder-flipped branch (pan ~ pi, arm
+    # reaching back over the base); task_branch="front" rejects that branch.
+    # Actions may leave this box freely.
     TASK_JOINT_LOW = (-math.pi / 2, -math.pi, 0.0)
     TASK_JOINT_HIGH = (math.pi, 0.0, math.pi)
 
@@ -134,6 +145,7 @@ class UR5eReachEnv(EnvBase):
         dtype: torch.dtype = torch.float32,
         compile_collision: bool = False,
         workspace_exit: str = "collision",
+        task_branch: str = "front",
     ):
         batch = _as_batch_size(num_envs, batch_size)
         if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
@@ -152,6 +164,9 @@ class UR5eReachEnv(EnvBase):
         if workspace_exit not in WORKSPACE_EXIT_MODES:
             raise ValueError(f"workspace_exit must be one of {WORKSPACE_EXIT_MODES}, got {workspace_exit!r}")
         self.workspace_exit = workspace_exit
+        if task_branch not in TASK_BRANCHES:
+            raise ValueError(f"task_branch must be one of {TASK_BRANCHES}, got {task_branch!r}")
+        self.task_branch = task_branch
         self.dtype = dtype
         if robot is None:
             robot = UR5e(device=device, dtype=dtype)
@@ -390,11 +405,22 @@ class UR5eReachEnv(EnvBase):
             raise ValueError(f"{name} must have shape (..., 15), got {tuple(obs.shape)}")
 
     # ------------------------------------------------------------- sampling
+    @staticmethod
+    def reach_along_pan(q: torch.Tensor, tcp: torch.Tensor) -> torch.Tensor:
+        """Horizontal reach of the TCP along the pan direction ``(...)``, metres.
+
+        Positive in the front branch, negative when the shoulder is flipped and
+        the arm reaches back over the base (the shoulder's lateral offset is
+        perpendicular to the pan direction, so it drops out).
+        """
+        pan = q[..., 0]
+        return tcp[..., 0] * torch.cos(pan) + tcp[..., 1] * torch.sin(pan)
+
     def sample_tasks(self, n: int, generator: torch.Generator | None = None) -> TensorDict:
         """Draw ``n`` tasks by vectorised rejection sampling.
 
         Start and goal are collision-free configurations whose TCPs lie in the
-        workspace; the obstacle centre is uniform in its region; a draw is kept
+        workspace (in the front branch unless ``task_branch="any"``); the obstacle centre is uniform in its region; a draw is kept
         when ``d2 > d1 > d3``. Two stages, same distribution as rejecting whole
         (start, goal, obstacle) draws: configurations are first filtered by the
         obstacle-independent checks (table, self, workspace; ~17 % pass), then
@@ -413,7 +439,10 @@ class UR5eReachEnv(EnvBase):
             m = max(256, 16 * (n - have))
             q = self.task_joint_low + torch.rand(m, 3, generator=gen, **f) * span
             flags, tcp = self._flags_and_tcp(q, far_away)
-            keep = (flags == 0).squeeze(-1).nonzero().squeeze(-1)
+            ok = flags == 0
+            if self.task_branch == "front":
+                ok = ok & (self.reach_along_pan(q, tcp) > 0).unsqueeze(-1)
+            keep = ok.squeeze(-1).nonzero().squeeze(-1)
             if keep.numel() < 2:
                 continue
             q, tcp = q[keep], tcp[keep]
