@@ -292,3 +292,17 @@ def test_bad_arguments():
         env.step(td)
     with pytest.raises(ValueError, match="obs"):
         env.transition(torch.zeros(2, 14), torch.zeros(2, 3))
+
+
+@pytest.mark.parametrize("workspace_exit", ["collision", "block"])
+def test_transition_reward_is_transition_then_reward(workspace_exit):
+    # states from rollouts (some near the table, the box, the workspace's edge) and large random actions
+    env = UR5eReachEnv(num_envs=64, seed=3, workspace_exit=workspace_exit)
+    obs = env.rollout(20, break_when_any_done=False)["observation"].reshape(-1, 15)
+    action = torch.rand(obs.shape[0], 3, generator=torch.Generator().manual_seed(0)) * 2.4 - 1.2
+    nxt, reward = env.transition_reward(obs, action)
+    want = env.transition(obs, action)
+    torch.testing.assert_close(nxt, want)
+    torch.testing.assert_close(reward, env.reward(obs, want))
+    # every outcome is exercised: collisions, successes are rare, plain -distance steps
+    assert (reward == env.COLLISION_REWARD).any() and (reward < 0).any() and (reward > env.COLLISION_REWARD).any()

@@ -358,6 +358,24 @@ class UR5eReachEnv(EnvBase):
             q_next, tcp = self._block_workspace_exit(obs[..., :3], obs[..., 3:6], q_next, tcp)
         return torch.cat([q_next, tcp, obs[..., 6:]], dim=-1)
 
+    def transition_reward(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(next_obs, reward)``: :meth:`transition` and :meth:`reward` of it in one model pass.
+
+        The collision kernel computes the TCP on its way, so the forward
+        kinematics run once instead of twice: what a model look-ahead (the
+        reward filter of :class:`~torchrl_silp.objectives.SILPLoss`) calls per step.
+        """
+        if self.workspace_exit == "block":
+            # a blocked step falls back on the previous state, whose flags the kernel has not seen
+            nxt = self.transition(obs, action)
+            return nxt, self.reward(obs, nxt)
+        self._check_obs(obs, "obs")
+        q_next = self._next_q(obs[..., :3], action)
+        flags, tcp = self._flags_and_tcp(q_next, obs[..., 6:12])
+        tcp = tcp.to(obs.dtype)
+        reward = self._score(flags, tcp, obs[..., 12:15])[0]
+        return torch.cat([q_next.to(obs.dtype), tcp, obs[..., 6:]], dim=-1), reward
+
     def _block_workspace_exit(self, q, tcp, q_next, tcp_next):
         # workspace_exit="block": a step that would take the TCP out of the workspace is not taken
         out = ~in_box(tcp_next, self.workspace_low, self.workspace_high).unsqueeze(-1)

@@ -314,6 +314,15 @@ class SILPLoss(LossModule):
             td_out = actor(td_in)
         return td_out.get(self._actor_action_key)
 
+    def _model_step(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # one fused model pass where the env offers it (UR5eReachEnv.transition_reward)
+        env = self.env
+        fused = getattr(env, "transition_reward", None)
+        if callable(fused):
+            return fused(obs, action)
+        nxt = env.transition(obs, action)
+        return nxt, env.reward(obs, nxt)
+
     def lookahead_returns(
         self, tensordict: TensorDictBase, policy_action: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -330,7 +339,7 @@ class SILPLoss(LossModule):
         """
         if self.env is None:
             raise ValueError("lookahead_returns needs the env passed to SILPLoss")
-        keys, env, shape = self.tensor_keys, self.env, tensordict.shape
+        keys, shape = self.tensor_keys, tensordict.shape
         td = tensordict.reshape(-1)
         n = td.shape[0]
         obs_key = keys.observation
@@ -339,8 +348,9 @@ class SILPLoss(LossModule):
             s0 = td.get(obs_key)
             r0_demo = td.get(("next", keys.reward)).reshape(n)
             s1_demo = td.get(("next", obs_key))
-            s1_pi = env.transition(s0, pi)
-            r0_pi = env.reward(s0, s1_pi).reshape(n)
+            step = self._model_step
+            s1_pi, r0_pi = step(s0, pi)
+            r0_pi = r0_pi.reshape(n)
             # both branches advance together as one batch of 2N rows
             state = torch.cat([s1_demo, s1_pi.to(s1_demo.dtype)])
             ret = torch.cat([r0_demo, r0_pi.to(r0_demo.dtype)])
@@ -351,8 +361,8 @@ class SILPLoss(LossModule):
                 discount = discount * gamma
                 actor_td.set(obs_key, state)
                 action = self._policy_action(actor_td)
-                nxt = env.transition(state, action)
-                ret = ret + discount * env.reward(state, nxt).reshape(2 * n).to(ret.dtype)
+                nxt, reward = step(state, action)
+                ret = ret + discount * reward.reshape(2 * n).to(ret.dtype)
                 state = nxt.to(state.dtype)
         ret_demo, ret_pi = ret.split(n)
         return ret_demo.reshape(shape), ret_pi.reshape(shape)
