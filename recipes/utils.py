@@ -149,6 +149,7 @@ def make_buffers(cfg, env, device) -> MixedReplay:
         "n_pairs": cfg.planner.n_pairs,
         "step_size": cfg.planner.step_size,
         "method": cfg.planner.method,
+        "goal_node": bool(cfg.planner.goal_node),
     }
     demos = DemoReplayBuffer(env.base_env, capacity=cfg.replay_buffer.demo_size, device=device, planner_kwargs=planner)
     return MixedReplay(

@@ -265,6 +265,52 @@ def test_queries_include_each_episodes_own_start_to_goal(envs):
     assert all(torch.equal(x, y) for x, y in zip((ep, s, g), again))
 
 
+@SETTINGS
+@given(**episodes_strategy)
+def test_goal_nodes(envs, seed, collision_type, batch, T, kind):
+    env = envs[(collision_type, batch)]
+    episodes = rollout(env, seed, T, kind)
+    plain = ExperienceRoadmap(env, episodes, lazy=True)
+    rm = ExperienceRoadmap(env, episodes, lazy=True, goal_node=True)
+    starts, episode = split_episodes(episodes)
+    goal_q = episodes["goal_q"].reshape(-1, 3)[starts.reshape(-1)]
+    for e in range(rm.num_episodes):
+        n = int(plain.num_nodes[e])
+        # the visited nodes are those of the plain roadmap, in order; the goal node, if any, comes last
+        torch.testing.assert_close(rm.q[e, :n], plain.q[e, :n])
+        goal_nodes = rm.is_goal_node[e].nonzero().squeeze(-1).tolist()
+        if goal_nodes:
+            assert goal_nodes == [n] and int(rm.num_nodes[e]) == n + 1
+            torch.testing.assert_close(rm.q[e, n], goal_q[e])
+            torch.testing.assert_close(rm.tcp[e, n], rm.goal[e])
+        else:  # only when the episode visited the goal configuration exactly
+            assert (plain.q[e, :n] == goal_q[e]).all(-1).any()
+    assert torch.equal(rm.nearest_goal_node(), plain.nearest_goal_node())
+    ep, s, g = rm.queries(3, torch.Generator().manual_seed(seed))
+    assert (s != g).all() and not rm.is_goal_node[ep, s].any()
+    to_goal = rm.is_goal_node[ep, g]
+    # one query per episode ends at its goal node, from its first state
+    assert torch.equal(ep[to_goal], rm.is_goal_node.any(-1).nonzero().squeeze(-1)) and (s[to_goal] == 0).all()
+
+
+def test_goal_node_demonstrations_reach_the_real_goal(envs):
+    env = envs[(2, 3)]
+    episodes = rollout(env, 5, 30, "scripted")
+    gen = torch.Generator().manual_seed(0)
+    demos = plan_demonstrations(env, episodes, n_pairs=0, generator=gen, goal_node=True)
+    plain = plan_demonstrations(env, episodes, n_pairs=0, generator=torch.Generator().manual_seed(0))
+    goals = episodes["observation"][:, 0, 12:15]
+    reached = []
+    for lo, hi in demo_bounds(demos):
+        obs, last = demos["observation"][lo:hi + 1], demos["next", "observation"][hi]
+        assert demos["next", "success"][hi].item() and demos["next", "terminated"][hi].item()
+        real = (goals == obs[0, 12:15]).all(-1).any()
+        # a demo towards the real goal ends on the goal configuration itself
+        reached.append(bool(real) and bool((last[:3] == demos["goal_q"][lo]).all()))
+    assert any(reached)
+    assert demos.shape[0] > plain.shape[0]
+
+
 def test_clearance_radius_agrees_with_the_env_collision_check(envs):
     env = envs[(2, 1)]
     gen = torch.Generator().manual_seed(0)

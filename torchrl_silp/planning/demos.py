@@ -145,6 +145,7 @@ def plan_demonstrations(
     generator: torch.Generator | None = None,
     lazy: bool = True,
     certify: bool = False,
+    goal_node: bool = False,
 ) -> TensorDict:
     """Demonstrations planned on the experience of a batch of episodes (SILP+).
 
@@ -169,6 +170,8 @@ def plan_demonstrations(
             :func:`~torchrl_silp.planning.search.roadmap_paths`).
         certify: prove every edge free point by point instead of the paper's
             subdivision check (see :mod:`torchrl_silp.planning.edges`).
+        goal_node: also plan to each episode's real goal configuration (see
+            :class:`~torchrl_silp.planning.roadmap.ExperienceRoadmap`).
 
     Returns:
         TensorDict ``[N]`` of transitions with the keys and dtypes of an env
@@ -192,7 +195,9 @@ def plan_demonstrations(
         raise ValueError(f"method must be one of {SEARCH_METHODS}, got {method!r}")
     if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
         raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
-    roadmap = ExperienceRoadmap(env, episodes, d=d, step_size=step_size, lazy=lazy, certify=certify)
+    roadmap = ExperienceRoadmap(
+        env, episodes, d=d, step_size=step_size, lazy=lazy, certify=certify, goal_node=goal_node
+    )
     episode, start, goal = roadmap.queries(n_pairs, generator)
     paths = roadmap_paths(roadmap, episode, start, goal, method=method)
     return paths_to_demonstrations(env, roadmap, episode, paths)

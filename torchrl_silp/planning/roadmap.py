@@ -103,6 +103,12 @@ class ExperienceRoadmap:
         lazy: defer the edge checks to :meth:`check_edges`.
         certify: prove edges free point by point (slower, conservative near
             contact) instead of checking samples.
+        goal_node: also make each episode's real goal configuration
+            (``"goal_q"``, collision-free by the task's construction) a node, the
+            last of its episode, so that an episode that came within ``d`` of
+            its goal yields a demonstration that reaches the goal itself rather
+            than the visited state nearest it. An extension of the paper, whose
+            nodes are visited states only; needs ``"goal_q"`` in ``episodes``.
 
     Attributes:
         q: ``[E, N, 3]`` joint angles of the nodes (zero padding).
@@ -111,6 +117,8 @@ class ExperienceRoadmap:
         num_nodes: long ``[E]``.
         obstacle: ``[E, 6]`` and goal ``[E, 3]`` of each episode.
         reached: bool ``[E]``, whether the episode reached its goal.
+        is_goal_node: bool ``[E, N]``, True on the goal node of each episode
+            (all False without ``goal_node``).
         distance: ``[E, N, N]`` TCP distances between nodes.
         candidates: bool ``[E, N, N]``, symmetric: node pairs within ``d``.
         checked: bool ``[E, N, N]``: candidate edges whose check has run.
@@ -136,6 +144,7 @@ class ExperienceRoadmap:
         step_size: float = 0.02,
         lazy: bool = False,
         certify: bool = False,
+        goal_node: bool = False,
     ):
         self.d = _check_positive("d", d, "metres")
         self.step_size = _check_positive("step_size", step_size, "radians")
@@ -143,6 +152,10 @@ class ExperienceRoadmap:
             raise TypeError(f"lazy must be a bool, got {lazy!r}")
         if not isinstance(certify, bool):
             raise TypeError(f"certify must be a bool, got {certify!r}")
+        if not isinstance(goal_node, bool):
+            raise TypeError(f"goal_node must be a bool, got {goal_node!r}")
+        if goal_node and episodes.get("goal_q", None) is None:
+            raise ValueError('goal_node=True needs "goal_q" (the goal configuration) in episodes')
         self.certify = certify
         self._radius = None  # clearance_radius of every node, on the first certified check
         for name in ("collides", "transition", "outcome"):
@@ -177,7 +190,17 @@ class ExperienceRoadmap:
             reached.index_add_(0, episode.reshape(-1), success.reshape(-1).long())
         self.reached = reached > 0
 
-        qt, mask = self._pad(state[:, :6], node_episode, E)
+        # a 7th column flags goal nodes through the padding and the de-duplication
+        rows = torch.cat([state[:, :6], torch.zeros_like(state[:, :1])], dim=-1)
+        if goal_node:
+            goal_q = episodes.get("goal_q").reshape(-1, T, 3).reshape(-1, 3)[first_step].to(rows.dtype)
+            goal_rows = torch.cat([goal_q, self.goal.to(rows.dtype), torch.ones_like(goal_q[:, :1])], dim=-1)
+            rows = torch.cat([rows, goal_rows])
+            node_episode = torch.cat([node_episode, torch.arange(E, device=device)])
+            # stable: visiting order kept, each goal node last in its episode
+            node_episode, order = torch.sort(node_episode, stable=True)
+            rows = rows[order]
+        qt, mask = self._pad(rows, node_episode, E)
         # exact repeats: a node equal to an earlier node of its episode
         q = qt[..., :3]
         same = (q.unsqueeze(2) == q.unsqueeze(1)).all(-1) & mask.unsqueeze(1) & mask.unsqueeze(2)
@@ -187,6 +210,7 @@ class ExperienceRoadmap:
             ep = torch.arange(E, device=device).unsqueeze(-1).expand_as(flat)[flat]
             qt, mask = self._pad(qt[flat], ep, E)
         self.q, self.tcp, self.mask = qt[..., :3].contiguous(), qt[..., 3:6].contiguous(), mask
+        self.is_goal_node = (qt[..., 6] > 0.5) & mask
         self.num_nodes = mask.sum(-1)
         q, tcp = self.q, self.tcp
 
@@ -287,20 +311,21 @@ class ExperienceRoadmap:
 
     # ---------------------------------------------------------------- queries
     def nearest_goal_node(self) -> torch.Tensor:
-        """long ``[E]``: the node of each episode whose TCP is nearest its real goal."""
+        """long ``[E]``: the visited node of each episode whose TCP is nearest its real goal."""
         dist = (self.tcp - self.goal.unsqueeze(1)).norm(dim=-1)
-        return dist.masked_fill(~self.mask, math.inf).argmin(-1)
+        return dist.masked_fill(~self.mask | self.is_goal_node, math.inf).argmin(-1)
 
     def queries(
         self, n_pairs: int = 10, generator: torch.Generator | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Start/goal queries: each episode's own, then ``n_pairs`` random node pairs.
 
-        Random pairs draw the start uniformly among an episode's nodes and the
-        goal uniformly among the others (episodes with one node get none). Each
-        episode's own query goes from its first state to the node nearest its
-        real goal (that node *is* the goal when the episode reached it), unless
-        the two coincide.
+        Random pairs draw the start uniformly among an episode's visited nodes
+        and the goal uniformly among the others (episodes with one node get
+        none). Each episode's own query goes from its first state to the
+        visited node nearest its real goal (that node *is* the goal when the
+        episode reached it), unless the two coincide; with goal nodes, a second
+        one goes from the first state to the goal node.
 
         Args:
             n_pairs: random pairs per episode (>= 0).
@@ -313,17 +338,23 @@ class ExperienceRoadmap:
         if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
             raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
         E, device = self.num_episodes, self.device
-        n = self.num_nodes.unsqueeze(-1)
+        has_goal_node = self.is_goal_node.any(-1)
+        n = (self.num_nodes - has_goal_node.long()).unsqueeze(-1)  # visited nodes come first
         start = torch.zeros(E, n_pairs + 1, dtype=torch.long, device=device)
         goal = self.nearest_goal_node().unsqueeze(-1).repeat(1, n_pairs + 1)
+        if bool(has_goal_node.any()):
+            # the goal node's query right after the own one; a start equal to it drops it below
+            to_goal = torch.where(has_goal_node, self.num_nodes - 1, 0).unsqueeze(-1)
+            start = torch.cat([start[:, :1], torch.zeros_like(to_goal), start[:, 1:]], dim=1)
+            goal = torch.cat([goal[:, :1], to_goal, goal[:, 1:]], dim=1)
         if n_pairs:
             gdev = generator.device if generator is not None else device
             u = torch.rand(2, E, n_pairs, generator=generator, device=gdev).to(device)
             s = (u[0] * n).long().clamp(max=n - 1)
             # goal = start + an offset in 1..n-1, so that it differs from the start
             offset = 1 + (u[1] * (n - 1)).long().clamp(max=(n - 2).clamp(min=0))
-            start[:, 1:] = s
-            goal[:, 1:] = (s + offset) % n.clamp(min=1)
+            start[:, -n_pairs:] = s
+            goal[:, -n_pairs:] = (s + offset) % n.clamp(min=1)
         episode = torch.arange(E, device=device).unsqueeze(-1).expand_as(start)
         ok = start != goal
         return episode[ok], start[ok], goal[ok]
