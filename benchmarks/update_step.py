@@ -7,7 +7,9 @@ its planned demonstrations, then times (median of ``--reps`` calls):
 * ``sample``: one ``MixedReplay.sample`` (N_D demos + N_pi interaction transitions);
 * ``rl loss``: the wrapped actor-critic loss's forward (SAC: actor, 2 Q-nets, target);
 * ``bc loss``: the SILP+ term's forward (actor on the demo rows + the reward filter's
-  look-ahead through the env model);
+  look-ahead through the env model); ``bc loss, unfused model``: the same with the
+  model's ``transition`` and ``reward`` called separately (the fused
+  ``transition_reward`` hidden), the A/B of that optimisation in one run;
 * ``update``: forward + backward + every optimiser step + the soft target update.
 
 Run::
@@ -35,6 +37,13 @@ sys.path.insert(0, str(RECIPES))
 from utils import make_actor_critic, make_buffers, make_env, make_loss, make_optimizers  # noqa: E402
 
 from torchrl_silp.objectives import SILPLoss  # noqa: E402
+
+
+class _UnfusedModel:
+    """An env model with transition and reward only: what SILPLoss sees of an env without transition_reward."""
+
+    def __init__(self, env):
+        self.transition, self.reward = env.transition, env.reward
 
 
 def median_ms(fn, reps: int) -> float:
@@ -82,6 +91,12 @@ def main(argv: list[str] | None = None) -> dict:
     if isinstance(loss, SILPLoss):
         figures["rl loss"] = median_ms(lambda: loss.rl_loss(batch), args.reps)
         figures["bc loss"] = median_ms(lambda: loss.bc_loss(batch), args.reps)
+        if cfg.silp.filter == "reward":
+            # the same term through separate transition and reward calls (FK twice per look-ahead step)
+            fused_env = loss.env
+            loss.__dict__["env"] = _UnfusedModel(fused_env)
+            figures["bc loss, unfused model"] = median_ms(lambda: loss.bc_loss(batch), args.reps)
+            loss.__dict__["env"] = fused_env
     else:
         figures["rl loss"] = median_ms(lambda: loss(batch), args.reps)
     figures["update"] = median_ms(update, args.reps)
@@ -89,7 +104,7 @@ def main(argv: list[str] | None = None) -> dict:
           f"{os.cpu_count()} CPUs; batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, "
           f"overrides {args.overrides or 'none'}")
     for name, ms in figures.items():
-        print(f"{name:>8s}: {ms:7.2f} ms")
+        print(f"{name:>22s}: {ms:7.2f} ms")
     return figures
 
 
