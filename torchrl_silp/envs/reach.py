@@ -17,7 +17,7 @@ from torchrl_silp.geometry import (
 )
 from torchrl_silp.robot import UR5e
 
-__all__ = ["UR5eReachEnv", "COLLISION_TYPES", "WORKSPACE_EXIT_MODES"]
+__all__ = ["UR5eReachEnv", "COLLISION_TYPES", "TASK_BRANCHES", "WORKSPACE_EXIT_MODES"]
 
 COLLISION_TYPES = (0, 1, 2)
 WORKSPACE_EXIT_MODES = ("collision", "block")
@@ -100,7 +100,7 @@ class UR5eReachEnv(EnvBase):
             one branch, as a physical set-up started from a home pose would be.
             ``"any"``: the whole task joint box, which also holds the
             shoulder-flipped branch (pan near pi, the arm reaching back over the
-            base; ~19 % of starts), this env's distribution before the option existed.
+            base; 17-19 % of starts), this env's distribution before the option existed.
             Only task sampling depends on it; the arm may enter either branch.
 
     Examples:
