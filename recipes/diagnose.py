@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from utils import make_actor_critic, make_env, make_loss, rl_loss_of  # noqa: E402
 
 from torchrl_silp import CollisionReason, UR5eReachEnv  # noqa: E402
-from torchrl_silp.eval import DEFAULT_TEST_SEED  # noqa: E402
+from torchrl_silp.eval import DEFAULT_TEST_SEED, episode_outcomes, evaluate  # noqa: E402
 
 
 def min_q(rl, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -78,12 +78,8 @@ def main(argv: list[str]) -> None:
         workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        ro = test.rollout(cfg.env.max_steps, actor, break_when_any_done=False, break_when_all_done=True)
-        done = ro["next", "done"].squeeze(-1)
-        alive = torch.ones_like(done)
-        alive[:, 1:] = ~done[:, :-1].cumsum(-1).bool()
-        succ = (ro["next", "success"].squeeze(-1) & alive).any(-1)
-        coll = (ro["next", "collision"].squeeze(-1) & alive).any(-1)
+        _, ro = evaluate(actor, env=test, return_rollout=True)
+        _, succ, coll = episode_outcomes(ro)
         timeout = ~succ & ~coll
         print(f"outcomes: success {succ.float().mean():.3f}  collision {coll.float().mean():.3f}  "
               f"time-out {timeout.float().mean():.3f}")

@@ -10,12 +10,27 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_silp.envs.reach import UR5eReachEnv
 
-__all__ = ["evaluate", "DEFAULT_TEST_SEED"]
+__all__ = ["evaluate", "episode_outcomes", "DEFAULT_TEST_SEED"]
 
 DEFAULT_TEST_SEED = 20231101  # the 1000 test tasks every recipe and baseline reports on
 
 
 @torch.no_grad()
+def episode_outcomes(rollout: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(alive, success, collision)`` of a ``[n, T]`` rollout that ran on past each episode's end.
+
+    ``alive`` (bool ``[n, T]``) masks the steps after an episode's first done
+    flag; ``success`` and ``collision`` (bool ``[n]``) say whether an episode
+    had such a step before it ended.
+    """
+    done = rollout["next", "done"].squeeze(-1)
+    alive = torch.ones_like(done)
+    alive[..., 1:] = ~done[..., :-1].cumsum(-1).bool()
+    success = (rollout["next", "success"].squeeze(-1) & alive).any(-1)
+    collision = (rollout["next", "collision"].squeeze(-1) & alive).any(-1)
+    return alive, success, collision
+
+
 def evaluate(
     policy,
     n_tasks: int = 1000,
@@ -78,12 +93,7 @@ def evaluate(
         start = time.perf_counter()
         rollout = env.rollout(env.max_steps, policy, break_when_all_done=True, break_when_any_done=False)
         wall = time.perf_counter() - start
-    # steps after an episode ended are masked out by the rollout's own done flags
-    done = rollout["next", "done"].squeeze(-1)
-    alive = torch.ones_like(done)
-    alive[..., 1:] = ~done[..., :-1].cumsum(-1).bool()
-    success = (rollout["next", "success"].squeeze(-1) & alive).any(-1)
-    collision = (rollout["next", "collision"].squeeze(-1) & alive).any(-1)
+    alive, success, collision = episode_outcomes(rollout)
     steps = alive.sum(-1)
     returns = (rollout["next", "reward"].squeeze(-1) * alive).sum(-1)
     metrics = {

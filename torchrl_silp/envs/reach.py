@@ -438,8 +438,9 @@ class UR5eReachEnv(EnvBase):
         """Draw ``n`` tasks by vectorised rejection sampling.
 
         Start and goal are collision-free configurations whose TCPs lie in the
-        workspace (in the front branch unless ``task_branch="any"``); the obstacle centre is uniform in its region; a draw is kept
-        when ``d2 > d1 > d3``. Two stages, same distribution as rejecting whole
+        workspace (in the front branch unless ``task_branch="any"``); the
+        obstacle centre is uniform in its region; a draw is kept when
+        ``d2 > d1 > d3``. Two stages, same distribution as rejecting whole
         (start, goal, obstacle) draws: configurations are first filtered by the
         obstacle-independent checks (table, self, workspace; ~17 % pass), then
         random pairs of survivors meet a random obstacle. Returns a TensorDict

@@ -348,8 +348,7 @@ class SILPLoss(LossModule):
             s0 = td.get(obs_key)
             r0_demo = td.get(("next", keys.reward)).reshape(n)
             s1_demo = td.get(("next", obs_key))
-            step = self._model_step
-            s1_pi, r0_pi = step(s0, pi)
+            s1_pi, r0_pi = self._model_step(s0, pi)
             r0_pi = r0_pi.reshape(n)
             # both branches advance together as one batch of 2N rows
             state = torch.cat([s1_demo, s1_pi.to(s1_demo.dtype)])
@@ -361,7 +360,7 @@ class SILPLoss(LossModule):
                 discount = discount * gamma
                 actor_td.set(obs_key, state)
                 action = self._policy_action(actor_td)
-                nxt, reward = step(state, action)
+                nxt, reward = self._model_step(state, action)
                 ret = ret + discount * reward.reshape(2 * n).to(ret.dtype)
                 state = nxt.to(state.dtype)
         ret_demo, ret_pi = ret.split(n)

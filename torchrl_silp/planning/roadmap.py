@@ -193,7 +193,7 @@ class ExperienceRoadmap:
         # a 7th column flags goal nodes through the padding and the de-duplication
         rows = torch.cat([state[:, :6], torch.zeros_like(state[:, :1])], dim=-1)
         if goal_node:
-            goal_q = episodes.get("goal_q").reshape(-1, T, 3).reshape(-1, 3)[first_step].to(rows.dtype)
+            goal_q = episodes.get("goal_q").reshape(-1, 3)[first_step].to(rows.dtype)
             goal_rows = torch.cat([goal_q, self.goal.to(rows.dtype), torch.ones_like(goal_q[:, :1])], dim=-1)
             rows = torch.cat([rows, goal_rows])
             node_episode = torch.cat([node_episode, torch.arange(E, device=device)])
