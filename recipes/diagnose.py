@@ -14,7 +14,8 @@ deterministic policy out on the 1000 test tasks of ``evaluate`` and prints:
   of 2,048 random actions through the env's own model);
 * the critic at those final states: Q of the policy's action, of the action
   that truly reaches furthest, and the true reward of the critic's own best action;
-* success against task geometry: box in the straight TCP path or not, joint distance;
+* success against task geometry: box in the straight TCP path or not, joint distance,
+  start in the front or the shoulder-flipped IK branch (see ``UR5eReachEnv.task_branch``);
 * the critic on its own training data: Q of terminal success, collision and other
   transitions of the demonstration and interaction buffers;
 * what a uniformly random policy collides with (collision reasons).
@@ -22,6 +23,7 @@ deterministic policy out on the 1000 test tasks of ``evaluate`` and prints:
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -107,6 +109,7 @@ def main(argv: list[str]) -> None:
                   f"{median(qa[rows, reward.argmax(-1)]):.3f} (its reward median {median(reward[rows, reward.argmax(-1)]):.3f}); "
                   f"true reward of the critic's best action median {median(reward[rows, qa.argmax(-1)]):.3f}")
 
+        last_q = ro["next", "observation"][:, -1, :3]
         o = ro["observation"][:, 0]
         tcp, box, goal = o[:, 3:6], o[:, 6:12], o[:, 12:15]
         t = torch.linspace(0, 1, 50).view(1, 50, 1)
@@ -119,6 +122,11 @@ def main(argv: list[str]) -> None:
             m = (gap >= lo) & (gap < hi)
             if m.any():
                 print(f"  largest joint gap start->goal {lo}-{hi} rad: {int(m.sum())} tasks, success {succ[m].float().mean():.3f}")
+        flipped = UR5eReachEnv.reach_along_pan(o[:, :3], tcp) < 0
+        for name, m in (("front branch", ~flipped), ("shoulder-flipped branch", flipped)):
+            if m.any():
+                print(f"  start in the {name}: {int(m.sum())} tasks, success {succ[m].float().mean():.3f}, "
+                      f"time-outs ending with |pan| > pi {int((timeout & m & (last_q[:, 0].abs() > math.pi)).sum())}")
 
         for part, capacity in (("demos", cfg.replay_buffer.demo_size), ("interaction", cfg.replay_buffer.size)):
             path = ckpt / "buffers" / part

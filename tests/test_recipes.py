@@ -97,6 +97,9 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         # diagnose.py rolls out all 1000 test tasks; the run evaluated 8 of them
         assert 0.0 <= float(first[2]) <= 1.0
         assert "critic on the demos buffer" in diag.stdout and "random policy" in diag.stdout
+        # the default tasks all start in the front IK branch
+        assert "start in the front branch: 1000 tasks" in diag.stdout
+        assert "shoulder-flipped" not in diag.stdout
 
 
 @pytest.mark.parametrize(
