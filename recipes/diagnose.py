@@ -8,6 +8,7 @@ Loads ``RUN_DIR/checkpoint`` (networks and both buffers), rolls the
 deterministic policy out on the 1000 test tasks of ``evaluate`` and prints:
 
 * outcomes: success, collision, and time-outs (neither);
+* the same for the stochastic policy SAC samples from during training;
 * time-outs: whether the arm came to rest (|action| and joint travel over the
   last 10 steps), its final distance to the goal, and whether one action from
   the final state could reach the goal or get closer without a collision (best
@@ -85,6 +86,19 @@ def main(argv: list[str]) -> None:
         timeout = ~succ & ~coll
         print(f"outcomes: success {succ.float().mean():.3f}  collision {coll.float().mean():.3f}  "
               f"time-out {timeout.float().mean():.3f}")
+
+        # the same tasks under the sampling policy SAC trains with: a gap to the deterministic
+        # policy means the noise, not the mean action, finishes the reaches the critic was trained on
+        noisy = UR5eReachEnv(
+            num_envs=1000, seed=DEFAULT_TEST_SEED, collision_type=0, max_steps=cfg.env.max_steps,
+            workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
+        )
+        torch.manual_seed(0)
+        with set_exploration_type(ExplorationType.RANDOM):
+            noisy_ro = noisy.rollout(noisy.max_steps, actor, break_when_all_done=True, break_when_any_done=False)
+        _, n_succ, n_coll = episode_outcomes(noisy_ro)
+        print(f"the sampling (stochastic) policy on the same tasks: success {n_succ.float().mean():.3f}  "
+              f"collision {n_coll.float().mean():.3f}")
 
         last = ro["next", "observation"][timeout][:, -1]
         if last.shape[0]:

@@ -76,6 +76,9 @@ def validate(cfg: DictConfig) -> None:
         check_choice(name, value, allowed)
     if not cfg.optim.utd_ratio > 0:
         raise ValueError(f"optim.utd_ratio must be > 0, got {cfg.optim.utd_ratio!r}")
+    target_entropy = cfg.optim.get("target_entropy", "auto")
+    if target_entropy != "auto" and (isinstance(target_entropy, bool) or not isinstance(target_entropy, (int, float))):
+        raise ValueError(f"optim.target_entropy must be 'auto' or a number, got {target_entropy!r}")
     if cfg.device not in ("cpu", "cuda", "auto") and not str(cfg.device).startswith("cuda:"):
         raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {cfg.device!r}")
 

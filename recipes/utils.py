@@ -205,6 +205,7 @@ def make_loss(cfg, actor, critic, env):
             delay_qvalue=True,
             alpha_init=cfg.optim.alpha_init,
             min_alpha=cfg.optim.get("min_alpha", None),
+            target_entropy=cfg.optim.get("target_entropy", "auto"),
         )
     elif cfg.algorithm == "ddpg":
         rl = DDPGLoss(actor_network=actor, value_network=critic, delay_actor=True, delay_value=True, loss_function="l2")

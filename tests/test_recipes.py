@@ -112,6 +112,7 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         ("collector.frames_per_batch=101", "collector.frames_per_batch"),
         ("env.collision_type=3", "env.collision_type"),
         ("device=tpu", "device"),
+        ("optim.target_entropy=high", "optim.target_entropy"),
     ],
 )
 def test_bad_config_is_rejected_before_work(tmp_path, override, name):
