@@ -73,8 +73,13 @@ def main(argv: list[str]) -> None:
     env = make_env(cfg, device, seed=0)
     actor, critic = make_actor_critic(cfg, env, device)
     loss, _ = make_loss(cfg, actor, critic, env)
-    loss.load_state_dict(torch.load(ckpt / "state.pt", weights_only=False)["loss"])
+    state = torch.load(ckpt / "state.pt", weights_only=False)
+    loss.load_state_dict(state["loss"])
     rl = rl_loss_of(loss)
+    if state.get("averaged_actor") is not None:
+        # the run evaluated an average of the actor's parameters (eval.actor_average_decay): diagnose that policy
+        state["averaged_actor"].to_module(actor)
+        print("policy: the averaged actor the run evaluated (eval.actor_average_decay)")
 
     test = UR5eReachEnv(
         num_envs=1000, seed=DEFAULT_TEST_SEED, collision_type=0, max_steps=cfg.env.max_steps,

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict
 from torchrl._utils import timeit
 from torchrl.record.loggers import get_logger
 
@@ -79,6 +80,9 @@ def validate(cfg: DictConfig) -> None:
     target_entropy = cfg.optim.get("target_entropy", "auto")
     if target_entropy != "auto" and (isinstance(target_entropy, bool) or not isinstance(target_entropy, (int, float))):
         raise ValueError(f"optim.target_entropy must be 'auto' or a number, got {target_entropy!r}")
+    decay = cfg.eval.get("actor_average_decay", None)
+    if decay is not None and (isinstance(decay, bool) or not isinstance(decay, (int, float)) or not 0 < decay < 1):
+        raise ValueError(f"eval.actor_average_decay must be null or a number in (0, 1), got {decay!r}")
     if cfg.device not in ("cpu", "cuda", "auto") and not str(cfg.device).startswith("cuda:"):
         raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {cfg.device!r}")
 
@@ -105,6 +109,12 @@ def train(cfg: DictConfig) -> dict:
     policy = make_exploration_policy(cfg, actor, env, device)
     buffers = make_buffers(cfg, env, device)
     assembler = EpisodeAssembler()
+    # the evaluated policy: the actor itself, or an exponential moving average of its
+    # parameters over updates (eval.actor_average_decay), which evens out the swings of
+    # the online actor between evaluations
+    decay = cfg.eval.get("actor_average_decay", None)
+    actor_params = TensorDict.from_module(actor)
+    averaged_params = actor_params.data.clone() if decay is not None else None
 
     counters = {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0,
                 "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None}
@@ -117,6 +127,11 @@ def train(cfg: DictConfig) -> dict:
         for name, opt in optimizers.items():
             opt.load_state_dict(state["optimizers"][name])
         counters, history, logger_state = state["counters"], state["history"], state["logger"]
+        if averaged_params is not None:
+            if state.get("averaged_actor") is None:
+                raise ValueError("eval.actor_average_decay is set but the checkpoint holds no averaged actor: "
+                                 "resume with the config the run was started with")
+            averaged_params.update_(state["averaged_actor"])
         torch.set_rng_state(state["torch_rng"])
         env.base_env.rng.set_state(state["env_rng"])
         # the collector starts new episodes: plan what was left unfinished
@@ -150,11 +165,27 @@ def train(cfg: DictConfig) -> dict:
             opt.step()
             opt.zero_grad(set_to_none=True)
         updater.step()
+        if averaged_params is not None:
+            with torch.no_grad():
+                averaged_params.lerp_(actor_params.data, 1.0 - decay)
         return loss_td.detach()
 
+    def evaluate_policy(**kwargs):
+        """``evaluate`` on the evaluated policy, plus the online actor's success rate when that is an average."""
+        run = lambda: evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,  # noqa: E731
+                               workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
+                               device=device, **kwargs)
+        if averaged_params is None:
+            return run()
+        online = run()
+        with averaged_params.to_module(actor):
+            result = run()
+        metrics = result[0] if isinstance(result, tuple) else result
+        metrics["online_success_rate"] = (online[0] if isinstance(online, tuple) else online)["success_rate"]
+        return result
+
     def run_eval():
-        metrics = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,
-                           workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch, device=device)
+        metrics = evaluate_policy()
         point = {"frames": counters["frames"], "episodes": counters["episodes"],
                  "train_wall_s": counters["train_wall_s"], **metrics}
         history.append(point)
@@ -212,7 +243,7 @@ def train(cfg: DictConfig) -> dict:
         log_metrics(logger, metrics, counters["frames"])
         pbar.update(batch.numel())
         if counters["iterations"] % cfg.checkpoint.every_iters == 0:
-            save_checkpoint(ckpt_dir, _state(loss, optimizers, counters, history, logger, env), buffers, assembler)
+            save_checkpoint(ckpt_dir, _state(loss, optimizers, counters, history, logger, env, averaged_params), buffers, assembler)
         if cfg.stop_at_success is not None and history and history[-1]["success_rate"] >= cfg.stop_at_success:
             break
         if cfg.max_train_wall_s and counters["train_wall_s"] >= cfg.max_train_wall_s:
@@ -221,14 +252,13 @@ def train(cfg: DictConfig) -> dict:
     collector.shutdown()
     pbar.close()
 
-    final, rollout = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,
-                              workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch, device=device, return_rollout=True)
+    final, rollout = evaluate_policy(return_rollout=True)
     if not history or history[-1]["frames"] != counters["frames"]:
         history.append({"frames": counters["frames"], "episodes": counters["episodes"],
                         "train_wall_s": counters["train_wall_s"], **final})
         if counters["time_to_095_s"] is None and final["success_rate"] >= 0.95:
             counters["time_to_095_s"] = counters["train_wall_s"]
-    save_checkpoint(ckpt_dir, _state(loss, optimizers, counters, history, logger, env), buffers, assembler)
+    save_checkpoint(ckpt_dir, _state(loss, optimizers, counters, history, logger, env, averaged_params), buffers, assembler)
     summary = {
         "algorithm": cfg.algorithm,
         "silp_bc": bool(cfg.silp.bc),
@@ -236,6 +266,8 @@ def train(cfg: DictConfig) -> dict:
         "exploration": cfg.exploration.mode,
         "seed": cfg.seed,
         "success_rate": final["success_rate"],
+        "online_success_rate": final.get("online_success_rate", final["success_rate"]),
+        "evaluated_actor": "online" if averaged_params is None else f"average (decay {decay})",
         "test_collision_rate": final["collision_rate"],
         "collisions_during_training": counters["collisions"],
         "episodes": counters["episodes"],
@@ -256,9 +288,10 @@ def train(cfg: DictConfig) -> dict:
     return summary
 
 
-def _state(loss, optimizers, counters, history, logger, env) -> dict:
+def _state(loss, optimizers, counters, history, logger, env, averaged_params) -> dict:
     return {
         "loss": loss.state_dict(),
+        "averaged_actor": averaged_params.clone() if averaged_params is not None else None,
         "optimizers": {name: opt.state_dict() for name, opt in optimizers.items()},
         "counters": dict(counters),
         "history": list(history),

@@ -174,7 +174,7 @@ class EpisodeAssembler:
 
     def push(self, batch: TensorDictBase) -> TensorDictBase | None:
         flat = batch.reshape(-1)
-        if self.pending is not None and self.pending.numel():
+        if self.pending is not None and self.pending.batch_size.numel():
             flat = torch.cat([self.pending, flat])
         ids = flat["collector", "traj_ids"].reshape(-1)
         done = flat["next", "done"].reshape(-1)
@@ -189,7 +189,7 @@ class EpisodeAssembler:
 
     def flush(self) -> TensorDictBase | None:
         out, self.pending = self.pending, None
-        return out if out is not None and out.numel() else None
+        return out if out is not None and out.batch_size.numel() else None
 
 
 # ---------------------------------------------------------------------- loss
@@ -260,7 +260,7 @@ def save_checkpoint(path: Path, state: dict, buffers: MixedReplay, assembler: Ep
     tmp.mkdir(parents=True)
     torch.save(state, tmp / "state.pt")
     buffers.dumps(tmp / "buffers")
-    if assembler.pending is not None and assembler.pending.numel():
+    if assembler.pending is not None and assembler.pending.batch_size.numel():
         torch.save(assembler.pending, tmp / "pending_episodes.pt")
     old = path.with_name(path.name + ".old")
     if path.exists():

@@ -113,6 +113,7 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         ("env.collision_type=3", "env.collision_type"),
         ("device=tpu", "device"),
         ("optim.target_entropy=high", "optim.target_entropy"),
+        ("eval.actor_average_decay=1.5", "eval.actor_average_decay"),
     ],
 )
 def test_bad_config_is_rejected_before_work(tmp_path, override, name):
@@ -170,6 +171,45 @@ def test_resume_after_kill_continues_without_losing_data(tmp_path):
     assert len(demos_after) >= n_demo
     assert (demos_after.storage[:n_demo] == demos.storage[:n_demo]).all()
     assert summary(run_dir)["frames"] == target
+
+
+def _actor_tensors(state: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """The averaged actor and the trained actor of a checkpoint, each flattened into one vector."""
+    averaged = state["averaged_actor"].flatten_keys()
+    loss = state["loss"]
+    online = [loss[f"rl_loss.actor_network_params.{key}"] for key in averaged.keys()]
+    return torch.cat([v.flatten() for v in averaged.values()]), torch.cat([v.flatten() for v in online])
+
+
+def test_averaged_actor_is_evaluated_checkpointed_and_resumed(tmp_path):
+    run_dir = tmp_path / "run"
+    state_of = lambda: torch.load(run_dir / "checkpoint" / "state.pt", weights_only=False)  # noqa: E731
+    first = run_recipe("sac_silp.py", run_dir, "collector.total_frames=200", "eval.actor_average_decay=0.999")
+    assert first.returncode == 0, first.stderr[-3000:]
+    s = summary(run_dir)
+    assert s["evaluated_actor"] == "average (decay 0.999)" and 0 <= s["online_success_rate"] <= 1
+    avg1, online1 = _actor_tensors(state_of())
+    gap = (online1 - avg1).norm()
+    assert gap > 0  # 50 updates moved the actor away from its slow average
+
+    # resumed, the average goes on from the checkpoint's (25 updates at decay 0.999 move it by
+    # ~2.5 % of its gap to the actor); restarted from the actor it would jump the whole gap
+    again = run_recipe("sac_silp.py", run_dir, "collector.total_frames=300", "eval.actor_average_decay=0.999", "resume=true")
+    assert again.returncode == 0, again.stderr[-3000:]
+    avg2, _ = _actor_tensors(state_of())
+    assert 0 < (avg2 - avg1).norm() < 0.1 * gap
+
+    # with a vanishing decay the average is the trained actor: it follows the right parameters
+    last = run_recipe("sac_silp.py", run_dir, "collector.total_frames=400", "eval.actor_average_decay=1e-6", "resume=true")
+    assert last.returncode == 0, last.stderr[-3000:]
+    avg3, online3 = _actor_tensors(state_of())
+    torch.testing.assert_close(avg3, online3, rtol=0, atol=1e-5)
+
+    # a run saved without an average cannot silently start one from the current actor on resume
+    plain = tmp_path / "plain"
+    assert run_recipe("sac_silp.py", plain, "collector.total_frames=100").returncode == 0
+    bad = run_recipe("sac_silp.py", plain, "collector.total_frames=200", "eval.actor_average_decay=0.999", "resume=true")
+    assert bad.returncode != 0 and "eval.actor_average_decay" in bad.stderr
 
 
 def _fake_run(path: Path, success: list[float], wall: float, to_095) -> None:

@@ -447,7 +447,7 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
         raise TypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
     max_panels = _positive_int(max_panels, "max_panels")
     dpi = _positive_int(dpi, "dpi", 10)
-    if rollout.batch_dims < 1 or rollout.numel() == 0:
+    if rollout.batch_dims < 1 or rollout.batch_size.numel() == 0:
         raise ValueError(f"rollout must have batch [B, T] or [T] with T >= 1, got {tuple(rollout.batch_size)}")
     missing = [k for k in ("observation", ("next", "observation")) if k not in rollout.keys(True)]
     if missing:

@@ -117,7 +117,7 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
     def add_demonstrations(self, demos: TensorDictBase, *args, **kwargs) -> torch.Tensor:
         """Store ready-made demo transitions (flagged ``"is_demo"``) without planning."""
         demos = _flat(demos)
-        if demos.numel() == 0:
+        if demos.batch_size.numel() == 0:
             return torch.empty(0, dtype=torch.long)
         demos.set("is_demo", torch.ones(*demos.batch_size, 1, dtype=torch.bool, device=demos.device))
         if self.keys is not None:

@@ -46,7 +46,7 @@ def split_episodes(episodes: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor
     """
     if not isinstance(episodes, TensorDictBase):
         raise TypeError(f"episodes must be a TensorDict with batch dims [..., T], got {type(episodes).__name__}")
-    if episodes.batch_dims < 1 or episodes.numel() == 0:
+    if episodes.batch_dims < 1 or episodes.batch_size.numel() == 0:
         raise ValueError(f"episodes must have batch dims [..., T] with T >= 1, got {tuple(episodes.batch_size)}")
     T = episodes.batch_size[-1]
     done = episodes.get(("next", "done"), None)
