@@ -67,6 +67,29 @@ class GoalRelativeMLP(nn.Module):
         return self.mlp(observation, to_goal, *others)
 
 
+class NextTCPFeatureQ(nn.Module):
+    """A Q-network that also sees where the action takes the TCP, through the env's kinematic model.
+
+    Success is a step in the *next* TCP's distance to the goal (5 cm), so a
+    Q-network on ``(s, a)`` must learn the arm's kinematics to place that step;
+    near the goal it blurs it, and the policy comes to rest just outside the
+    5 cm ball. The env's transition ``f_s`` (the model SILP+ already uses for
+    its reward filter) gives the next TCP exactly: its vector to the goal is
+    appended to the inputs. The model is differentiable in the action, so the
+    actor's gradient flows through it.
+    """
+
+    def __init__(self, inner: nn.Module, env: UR5eReachEnv):
+        super().__init__()
+        self.inner = inner
+        # a plain attribute, not a submodule: the env's tensors are no parameters of the critic
+        self.__dict__["model"] = env
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        next_tcp = self.model.transition(observation, action)[..., 3:6]
+        return self.inner(observation, action, observation[..., 12:15] - next_tcp)
+
+
 def _mlp(cfg, out_features: int, device) -> nn.Module:
     mlp = MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=nn.ReLU, device=device)
     return GoalRelativeMLP(mlp) if cfg.network.goal_relative else mlp
@@ -95,7 +118,10 @@ def make_actor_critic(cfg, env, device):
             TensorDictModule(_mlp(cfg, spec.shape[-1], device), in_keys=["observation"], out_keys=["param"]),
             TanhModule(in_keys=["param"], out_keys=["action"], spec=spec),
         )
-    critic = ValueOperator(_mlp(cfg, 1, device), in_keys=["observation", "action"])
+    q_net = _mlp(cfg, 1, device)
+    if cfg.network.get("next_tcp_feature", False):
+        q_net = NextTCPFeatureQ(q_net, env.base_env)
+    critic = ValueOperator(q_net, in_keys=["observation", "action"])
     with torch.no_grad():
         td = env.fake_tensordict().to(device)
         actor(td)

@@ -55,6 +55,8 @@ def load_buffer(path: Path) -> TensorDictReplayBuffer:
     [
         ("sac_silp.py", [], True, True),
         ("ddpg_silp.py", [], True, True),
+        # the Q-network fed the model's next TCP (the actor's gradient runs through the model)
+        ("sac_silp.py", ["network.next_tcp_feature=true"], True, True),
         # plain SAC: SILP+ off, no recovery exploration
         ("sac_silp.py", ["silp.demos=false", "silp.bc=false", "exploration.mode=none"], False, False),
     ],
