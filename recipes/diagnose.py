@@ -14,7 +14,8 @@ deterministic policy out on the 1000 test tasks of ``evaluate`` and prints:
   the final state could reach the goal or get closer without a collision (best
   of 2,048 random actions through the env's own model);
 * the critic at those final states: Q of the policy's action, of the action
-  that truly reaches furthest, and the true reward of the critic's own best action;
+  that truly reaches furthest, of the step straight into the goal ball (through
+  the model's Jacobian), and the true reward of the critic's own best action;
 * success against task geometry: box in the straight TCP path or not, joint distance,
   start in the front or the shoulder-flipped IK branch (see ``UR5eReachEnv.task_branch``);
 * the critic on its own training data: Q of terminal success, collision and other
@@ -127,6 +128,19 @@ def main(argv: list[str]) -> None:
             print(f"  critic: Q(s, pi(s)) median {median(min_q(rl, last, pi)):.3f}; Q(s, best true action) median "
                   f"{median(qa[rows, reward.argmax(-1)]):.3f} (its reward median {median(reward[rows, reward.argmax(-1)]):.3f}); "
                   f"true reward of the critic's best action median {median(reward[rows, qa.argmax(-1)]):.3f}")
+            # the step straight into the ball: the action that moves the TCP 2 cm inside it,
+            # through the model's finite-difference Jacobian; its true Q is its reward when that is +1
+            eps = 1e-3
+            tcp0 = test.transition(last, torch.zeros(F, 3))[:, 3:6]
+            jac = torch.stack([(test.transition(last, torch.eye(3)[i].expand(F, 3) * eps)[:, 3:6] - tcp0) / eps
+                               for i in range(3)], -1)
+            to_goal = last[:, 12:15] - last[:, 3:6]
+            want = to_goal * ((dist - test.success_distance + 0.02) / dist).unsqueeze(-1)
+            direct = torch.linalg.lstsq(jac, want.unsqueeze(-1)).solution.squeeze(-1).clamp(-1, 1)
+            direct_reward = test.transition_reward(last, direct)[1].squeeze(-1)
+            print(f"  the step 2 cm into the ball: reaches the goal {(direct_reward >= 1).float().mean():.3f}, "
+                  f"max |action| median {median(direct.abs().amax(-1)):.3f}; critic Q median "
+                  f"{median(min_q(rl, last, direct)):.3f} against Q(s, pi(s)) {median(min_q(rl, last, pi)):.3f}")
 
         last_q = ro["next", "observation"][:, -1, :3]
         o = ro["observation"][:, 0]
