@@ -94,7 +94,10 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
             cwd=tmp_path, capture_output=True, text=True, timeout=300,
         )
         assert diag.returncode == 0, diag.stderr[-3000:]
-        first = diag.stdout.splitlines()[0].split()
+        lines = diag.stdout.splitlines()
+        # the default config evaluates an average of the actor: diagnose looks at that policy
+        assert lines[0].startswith("policy: the averaged actor")
+        first = lines[1].split()
         assert first[:2] == ["outcomes:", "success"]
         # diagnose.py rolls out all 1000 test tasks; the run evaluated 8 of them
         assert 0.0 <= float(first[2]) <= 1.0
