@@ -82,10 +82,14 @@ def main(argv: list[str]) -> None:
         state["averaged_actor"].to_module(actor)
         print("policy: the averaged actor the run evaluated (eval.actor_average_decay)")
 
-    test = UR5eReachEnv(
-        num_envs=1000, seed=DEFAULT_TEST_SEED, collision_type=0, max_steps=cfg.env.max_steps,
-        workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
-    )
+    def test_tasks() -> UR5eReachEnv:
+        # a fresh env per rollout: each first reset draws the same 1000 tasks from the seed
+        return UR5eReachEnv(
+            num_envs=1000, seed=DEFAULT_TEST_SEED, collision_type=0, max_steps=cfg.env.max_steps,
+            workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
+        )
+
+    test = test_tasks()
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         _, ro = evaluate(actor, env=test, return_rollout=True)
         _, succ, coll = episode_outcomes(ro)
@@ -95,10 +99,7 @@ def main(argv: list[str]) -> None:
 
         # the same tasks under the sampling policy SAC trains with: a gap to the deterministic
         # policy means the noise, not the mean action, finishes the reaches the critic was trained on
-        noisy = UR5eReachEnv(
-            num_envs=1000, seed=DEFAULT_TEST_SEED, collision_type=0, max_steps=cfg.env.max_steps,
-            workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
-        )
+        noisy = test_tasks()
         torch.manual_seed(0)
         with set_exploration_type(ExplorationType.RANDOM):
             noisy_ro = noisy.rollout(noisy.max_steps, actor, break_when_all_done=True, break_when_any_done=False)
@@ -125,7 +126,8 @@ def main(argv: list[str]) -> None:
             with set_exploration_type(ExplorationType.DETERMINISTIC):
                 pi = actor(TensorDict(observation=last, batch_size=[F]))["action"]
             rows = torch.arange(F)
-            print(f"  critic: Q(s, pi(s)) median {median(min_q(rl, last, pi)):.3f}; Q(s, best true action) median "
+            q_pi = median(min_q(rl, last, pi))
+            print(f"  critic: Q(s, pi(s)) median {q_pi:.3f}; Q(s, best true action) median "
                   f"{median(qa[rows, reward.argmax(-1)]):.3f} (its reward median {median(reward[rows, reward.argmax(-1)]):.3f}); "
                   f"true reward of the critic's best action median {median(reward[rows, qa.argmax(-1)]):.3f}")
             # the step straight into the ball: the action that moves the TCP 2 cm inside it,
@@ -140,7 +142,7 @@ def main(argv: list[str]) -> None:
             direct_reward = test.transition_reward(last, direct)[1].squeeze(-1)
             print(f"  the step 2 cm into the ball: reaches the goal {(direct_reward >= 1).float().mean():.3f}, "
                   f"max |action| median {median(direct.abs().amax(-1)):.3f}; critic Q median "
-                  f"{median(min_q(rl, last, direct)):.3f} against Q(s, pi(s)) {median(min_q(rl, last, pi)):.3f}")
+                  f"{median(min_q(rl, last, direct)):.3f} against Q(s, pi(s)) {q_pi:.3f}")
 
         last_q = ro["next", "observation"][:, -1, :3]
         o = ro["observation"][:, 0]

@@ -170,19 +170,21 @@ def train(cfg: DictConfig) -> dict:
                 averaged_params.lerp_(actor_params.data, 1.0 - decay)
         return loss_td.detach()
 
-    def evaluate_policy(**kwargs):
+    def evaluate_policy(return_rollout: bool = False):
         """``evaluate`` on the evaluated policy, plus the online actor's success rate when that is an average."""
-        run = lambda: evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,  # noqa: E731
-                               workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
-                               device=device, **kwargs)
+        def run():
+            return evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,
+                            workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch,
+                            device=device, return_rollout=True)
+
         if averaged_params is None:
-            return run()
-        online = run()
-        with averaged_params.to_module(actor):
-            result = run()
-        metrics = result[0] if isinstance(result, tuple) else result
-        metrics["online_success_rate"] = (online[0] if isinstance(online, tuple) else online)["success_rate"]
-        return result
+            metrics, rollout = run()
+        else:
+            online, _ = run()
+            with averaged_params.to_module(actor):
+                metrics, rollout = run()
+            metrics["online_success_rate"] = online["success_rate"]
+        return (metrics, rollout) if return_rollout else metrics
 
     def run_eval():
         metrics = evaluate_policy()
