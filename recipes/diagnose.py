@@ -36,7 +36,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 sys.path.insert(0, str(Path(__file__).parent))
-from utils import make_actor_critic, make_env, make_loss, rl_loss_of  # noqa: E402
+from utils import load_trained_networks, make_env, rl_loss_of  # noqa: E402
 
 from torchrl_silp import CollisionReason, UR5eReachEnv  # noqa: E402
 from torchrl_silp.eval import DEFAULT_TEST_SEED, episode_outcomes, evaluate  # noqa: E402
@@ -72,14 +72,10 @@ def main(argv: list[str]) -> None:
         cfg = compose(config_name="sac_silp", overrides=overrides)
     device = torch.device("cpu")
     env = make_env(cfg, device, seed=0)
-    actor, critic = make_actor_critic(cfg, env, device)
-    loss, _ = make_loss(cfg, actor, critic, env)
-    state = torch.load(ckpt / "state.pt", weights_only=False)
-    loss.load_state_dict(state["loss"])
+    # the actor the run evaluated (the averaged one under eval.actor_average_decay): diagnose that policy
+    actor, loss, state = load_trained_networks(cfg, env, ckpt, device)
     rl = rl_loss_of(loss)
     if state.get("averaged_actor") is not None:
-        # the run evaluated an average of the actor's parameters (eval.actor_average_decay): diagnose that policy
-        state["averaged_actor"].to_module(actor)
         print("policy: the averaged actor the run evaluated (eval.actor_average_decay)")
 
     def test_tasks() -> UR5eReachEnv:

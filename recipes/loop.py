@@ -18,6 +18,7 @@ from torchrl_silp.eval import evaluate
 from torchrl_silp.viz import save_rollout_png
 
 from torchrl_silp.envs.reach import COLLISION_TYPES, TASK_BRANCHES, WORKSPACE_EXIT_MODES
+from torchrl_silp.data import HER_STRATEGIES
 from torchrl_silp.objectives import BC_FILTERS
 from torchrl_silp.planning import SEARCH_METHODS
 
@@ -28,6 +29,7 @@ from utils import (
     check_choice,
     EpisodeAssembler,
     checkpoint_exists,
+    cut_episodes,
     load_checkpoint,
     log_metrics,
     make_actor_critic,
@@ -72,9 +74,17 @@ def validate(cfg: DictConfig) -> None:
         "env.workspace_exit": (cfg.env.workspace_exit, WORKSPACE_EXIT_MODES),
         "env.task_branch": (cfg.env.task_branch, TASK_BRANCHES),
         "logger.backend": (cfg.logger.backend, LOGGER_BACKENDS),
+        "replay_buffer.her": (cfg.replay_buffer.get("her", False), (True, False)),
+        "replay_buffer.her_strategy": (cfg.replay_buffer.get("her_strategy", "future"), HER_STRATEGIES),
     }
     for name, (value, allowed) in choices.items():
         check_choice(name, value, allowed)
+    fraction = cfg.replay_buffer.demo_fraction
+    if fraction != "proportional" and (isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0 <= fraction <= 1):
+        raise ValueError(f"replay_buffer.demo_fraction must be a number in [0, 1] or 'proportional', got {fraction!r}")
+    her_ratio = cfg.replay_buffer.get("her_ratio", 0.8)
+    if isinstance(her_ratio, bool) or not isinstance(her_ratio, (int, float)) or not 0 <= her_ratio <= 1:
+        raise ValueError(f"replay_buffer.her_ratio must be a number in [0, 1], got {her_ratio!r}")
     if not cfg.optim.utd_ratio > 0:
         raise ValueError(f"optim.utd_ratio must be > 0, got {cfg.optim.utd_ratio!r}")
     target_entropy = cfg.optim.get("target_entropy", "auto")
@@ -101,6 +111,9 @@ def train(cfg: DictConfig) -> dict:
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_dir = run_dir / "checkpoint"
+    # the resolved config beside the results: what rebuilds the networks from the checkpoint
+    # (recipes/bc.py, diagnose.py) and what a report cites
+    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
 
     env = make_env(cfg, device, seed=cfg.seed)
     actor, critic = make_actor_critic(cfg, env, device)
@@ -109,6 +122,8 @@ def train(cfg: DictConfig) -> dict:
     policy = make_exploration_policy(cfg, actor, env, device)
     buffers = make_buffers(cfg, env, device)
     assembler = EpisodeAssembler()
+    # hindsight relabelling reads episode boundaries from storage order: it stores whole episodes
+    her = bool(cfg.replay_buffer.get("her", False))
     # the evaluated policy: the actor itself, or an exponential moving average of its
     # parameters over updates (eval.actor_average_decay), which evens out the swings of
     # the online actor between evaluations
@@ -134,8 +149,10 @@ def train(cfg: DictConfig) -> dict:
             averaged_params.update_(state["averaged_actor"])
         torch.set_rng_state(state["torch_rng"])
         env.base_env.rng.set_state(state["env_rng"])
-        # the collector starts new episodes: plan what was left unfinished
+        # the collector starts new episodes: plan (and store) what was left unfinished
         leftover = assembler.flush()
+        if leftover is not None and her:
+            buffers.extend(cut_episodes(leftover))
         if leftover is not None and cfg.silp.demos:
             buffers.demo_buffer.extend(leftover)
         print(f"resumed from {ckpt_dir}: {counters['frames']} frames, {len(buffers)} transitions in the buffers")
@@ -203,15 +220,20 @@ def train(cfg: DictConfig) -> dict:
         counters["frames"] += batch.numel()
         counters["episodes"] += int(batch["next", "done"].sum())
         counters["collisions"] += int(batch["next", "collision"].sum())
-        with timeit("rb - extend"):
-            buffers.extend(batch)
-        if cfg.silp.demos:
-            with timeit("plan"):
-                finished = assembler.push(batch)
-                if finished is not None:
+        if not her:
+            with timeit("rb - extend"):
+                buffers.extend(batch)
+        if cfg.silp.demos or her:
+            finished = assembler.push(batch)
+            if finished is not None and her:
+                with timeit("rb - extend"):
+                    buffers.extend(finished)
+            if finished is not None and cfg.silp.demos:
+                with timeit("plan"):
                     buffers.demo_buffer.extend(finished)
         losses = []
-        if counters["frames"] >= cfg.collector.init_random_frames:
+        # (with hindsight relabelling the buffers hold finished episodes only: none may have ended yet)
+        if counters["frames"] >= cfg.collector.init_random_frames and len(buffers):
             with timeit("train"):
                 for _ in range(updates_per_batch):
                     losses.append(update(buffers.sample()))
@@ -262,9 +284,11 @@ def train(cfg: DictConfig) -> dict:
             counters["time_to_095_s"] = counters["train_wall_s"]
     save_checkpoint(ckpt_dir, _state(loss, optimizers, counters, history, logger, env, averaged_params), buffers, assembler)
     summary = {
+        "method": cfg.logger.exp_name,
         "algorithm": cfg.algorithm,
         "silp_bc": bool(cfg.silp.bc),
         "silp_demos": bool(cfg.silp.demos),
+        "her": her,
         "exploration": cfg.exploration.mode,
         "seed": cfg.seed,
         "success_rate": final["success_rate"],

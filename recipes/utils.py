@@ -20,7 +20,7 @@ from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import UR5eReachEnv
-from torchrl_silp.data import DemoReplayBuffer, MixedReplay
+from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay
 from torchrl_silp.objectives import SILPLoss
 
 ALGORITHMS = ("sac", "ddpg", "td3")
@@ -178,8 +178,19 @@ def make_buffers(cfg, env, device) -> MixedReplay:
         "goal_node": bool(cfg.planner.goal_node),
     }
     demos = DemoReplayBuffer(env.base_env, capacity=cfg.replay_buffer.demo_size, device=device, planner_kwargs=planner)
+    interaction = None
+    if cfg.replay_buffer.get("her", False):
+        # the *-HER baselines: TorchRL's hindsight relabelling on the interaction data
+        interaction = GoalRelabelingReplayBuffer(
+            env.base_env,
+            her_ratio=cfg.replay_buffer.her_ratio,
+            strategy=cfg.replay_buffer.her_strategy,
+            capacity=cfg.replay_buffer.size,
+            device=device,
+        )
     return MixedReplay(
         demos,
+        interaction,
         interaction_capacity=cfg.replay_buffer.size,
         demo_fraction=cfg.replay_buffer.demo_fraction if cfg.silp.demos else 0.0,
         batch_size=cfg.optim.batch_size,
@@ -216,6 +227,25 @@ class EpisodeAssembler:
     def flush(self) -> TensorDictBase | None:
         out, self.pending = self.pending, None
         return out if out is not None and out.batch_size.numel() else None
+
+
+def cut_episodes(pieces: TensorDictBase) -> TensorDictBase:
+    """Unfinished episodes (what ``EpisodeAssembler.flush`` returns) as truncated whole ones.
+
+    Each trajectory's steps are made contiguous and in time order and its last
+    step is flagged truncated and done: what a buffer that reads episode
+    boundaries from ``("next", "done")`` (hindsight relabelling) needs.
+    """
+    ids = pieces["collector", "traj_ids"].reshape(-1)
+    order = torch.sort(ids, stable=True).indices
+    out = pieces[order].clone()
+    ids = ids[order]
+    last = torch.ones_like(ids, dtype=torch.bool)
+    last[:-1] = ids[1:] != ids[:-1]
+    last = last.view(-1, 1)
+    out["next", "truncated"] = out["next", "truncated"] | last
+    out["next", "done"] = out["next", "done"] | last
+    return out
 
 
 # ---------------------------------------------------------------------- loss
@@ -320,6 +350,25 @@ def load_checkpoint(path: Path, buffers: MixedReplay, assembler: EpisodeAssemble
 
 def checkpoint_exists(path: Path) -> bool:
     return _checkpoint_dir(path) is not None
+
+
+def load_trained_networks(cfg, env, path: Path, device) -> tuple:
+    """A run's networks, rebuilt from its config and loaded from its checkpoint: ``(actor, loss, state)``.
+
+    ``actor`` holds the parameters the run evaluated: the average of the
+    actor's parameters when the run kept one (``eval.actor_average_decay``),
+    else the online actor; ``loss`` holds the online networks (critic included).
+    """
+    found = _checkpoint_dir(path)
+    if found is None:
+        raise FileNotFoundError(f"no checkpoint under {path}")
+    actor, critic = make_actor_critic(cfg, env, device)
+    loss, _ = make_loss(cfg, actor, critic, env)
+    state = torch.load(found / "state.pt", map_location=device, weights_only=False)
+    loss.load_state_dict(state["loss"])
+    if state.get("averaged_actor") is not None:
+        state["averaged_actor"].to(device).to_module(actor)
+    return actor, loss, state
 
 
 # ------------------------------------------------------------------ reports

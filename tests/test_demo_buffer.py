@@ -42,6 +42,20 @@ def test_exact_split(env, episodes, batch, fraction):
     assert mixed.split(batch) == (n_demo, batch - n_demo)
 
 
+def test_proportional_split_samples_as_one_buffer(env, episodes):
+    # *-Demon: demos and interaction as if in one ordinary buffer, so the demo count of a
+    # batch is Binomial(batch, demo share of all stored transitions)
+    mixed = filled(env, episodes, n_demo_rows=100, demo_fraction="proportional")
+    share = 100 / len(mixed)
+    torch.manual_seed(0)
+    counts = torch.tensor([mixed.split(200)[0] for _ in range(2000)], dtype=torch.float64)
+    mean, var = 200 * share, 200 * share * (1 - share)
+    assert abs(counts.mean() - mean) < 4 * (var / 2000) ** 0.5
+    assert abs(counts.var() / var - 1) < 0.15
+    out = mixed.sample(64)
+    assert out.batch_size == (64,) and 0 <= int(out["is_demo"].sum()) <= 64
+
+
 def test_demo_rows_come_from_the_demo_buffer(env, episodes):
     demos = DemoReplayBuffer(env, capacity=1000)
     marked = episodes.reshape(-1)[:50].clone()
@@ -77,6 +91,8 @@ def test_both_empty_and_bad_arguments(env):
         mixed.sample()
     with pytest.raises(ValueError, match="demo_fraction"):
         MixedReplay(DemoReplayBuffer(env), demo_fraction=1.5)
+    with pytest.raises(ValueError, match="demo_fraction"):
+        MixedReplay(DemoReplayBuffer(env), demo_fraction="uniform")
     with pytest.raises(ValueError, match="capacity"):
         DemoReplayBuffer(env, capacity=0)
     with pytest.raises(TypeError, match="env"):

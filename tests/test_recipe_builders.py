@@ -50,3 +50,30 @@ def test_next_tcp_feature_is_the_model_next_tcp_to_goal():
     assert (grad_feature[inside] != 0).any() and (grad_feature[~inside] == 0).all()
     value.sum().backward()
     assert action.grad is not None and torch.isfinite(action.grad).all()
+
+
+METHODS = sorted(p.stem for p in (RECIPES / "config" / "method").glob("*.yaml"))
+
+
+def test_every_table1_learning_method_is_a_config():
+    # the paper's Table 1 rows that train with the recipe loop, each a `method=` option
+    from loop import validate
+
+    expected = {
+        # method: (algorithm, demos, bc, filter, exploration, her, demo_fraction)
+        "sac": ("sac", False, False, "reward", "random", False, 0.25),
+        "sac_her": ("sac", False, False, "reward", "random", True, 0.25),
+        "sac_demon": ("sac", True, False, "reward", "random", False, "proportional"),
+        "sac_silp": ("sac", True, True, "q", "random", False, 0.25),
+        "sac_silp_plus": ("sac", True, True, "reward", "gp", False, 0.25),
+    }
+    expected.update({"ddpg" + name[3:]: ("ddpg",) + flags[1:] for name, flags in expected.items() if name != "sac_silp"})
+    assert sorted(expected) == METHODS
+    for method, flags in expected.items():
+        with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
+            cfg = compose(config_name="sac_silp", overrides=[f"method={method}"])
+        validate(cfg)
+        got = (cfg.algorithm, cfg.silp.demos, cfg.silp.bc, cfg.silp.filter, cfg.exploration.mode,
+               cfg.replay_buffer.her, cfg.replay_buffer.demo_fraction)
+        assert got == flags, method
+        assert cfg.logger.exp_name == method

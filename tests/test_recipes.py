@@ -107,6 +107,29 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         assert "shoulder-flipped" not in diag.stdout
 
 
+@pytest.mark.parametrize("method", ["sac_her", "ddpg_demon"])
+def test_table1_baselines_train(tmp_path, method):
+    run_dir = tmp_path / "run"
+    proc = run_recipe("sac_silp.py", run_dir, "collector.total_frames=300", f"method={method}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = summary(run_dir)
+    assert out["method"] == method and out["frames"] == 300
+    assert out["her"] is (method == "sac_her") and out["silp_bc"] is False
+    assert (out["demos_stored"] > 0) is (method == "ddpg_demon")
+    ckpt = run_dir / "checkpoint"
+    interaction = load_buffer(ckpt / "buffers" / "interaction")
+    if method == "sac_her":
+        # hindsight relabelling stores whole episodes only: the unfinished ones wait in the checkpoint
+        pending = torch.load(ckpt / "pending_episodes.pt", weights_only=False) if (ckpt / "pending_episodes.pt").exists() else None
+        n_pending = 0 if pending is None else pending.batch_size.numel()
+        assert len(interaction) + n_pending == 300
+        assert bool(interaction.storage[len(interaction) - 1]["next", "done"])
+        # no update before the first episode ended (the first 100-frame batch ends none: 25 steps of 50)
+        assert 50 <= out["updates"] <= 75
+    else:
+        assert len(interaction) == 300 and out["updates"] == 75
+
+
 @pytest.mark.parametrize(
     "override,name",
     [
@@ -119,6 +142,8 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         ("device=tpu", "device"),
         ("optim.target_entropy=high", "optim.target_entropy"),
         ("eval.actor_average_decay=1.5", "eval.actor_average_decay"),
+        ("replay_buffer.demo_fraction=half", "replay_buffer.demo_fraction"),
+        ("replay_buffer.her_strategy=past", "replay_buffer.her_strategy"),
     ],
 )
 def test_bad_config_is_rejected_before_work(tmp_path, override, name):

@@ -188,7 +188,10 @@ class MixedReplay:
         interaction_buffer: a TorchRL replay buffer; by default a
             ``TensorDictReplayBuffer(LazyTensorStorage(interaction_capacity, device=device))``.
         interaction_capacity: capacity of the default interaction buffer.
-        demo_fraction: fraction of each batch drawn from demonstrations, in ``[0, 1]``.
+        demo_fraction: fraction of each batch drawn from demonstrations, in ``[0, 1]``,
+            or ``"proportional"``: the number of demos in a batch is binomial with the
+            demo buffer's share of all stored transitions, i.e. sampling as if both
+            lived in one ordinary replay buffer (the paper's *-Demon baselines).
         batch_size: default ``sample`` size.
         keys: keys kept in both parts (must be present in both).
         device: where sampled batches are returned (default: where they are stored).
@@ -218,8 +221,10 @@ class MixedReplay:
         keys: Sequence[NestedKey] = TRANSITION_KEYS,
         device: torch.device | str | None = None,
     ):
-        if not isinstance(demo_fraction, (int, float)) or not 0.0 <= demo_fraction <= 1.0:
-            raise ValueError(f"demo_fraction must be in [0, 1], got {demo_fraction!r}")
+        if demo_fraction != "proportional" and (
+            isinstance(demo_fraction, bool) or not isinstance(demo_fraction, (int, float)) or not 0.0 <= demo_fraction <= 1.0
+        ):
+            raise ValueError(f"demo_fraction must be a number in [0, 1] or 'proportional', got {demo_fraction!r}")
         if batch_size is not None and (isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1):
             raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
         if interaction_buffer is None:
@@ -230,7 +235,7 @@ class MixedReplay:
             )
         self.demo_buffer = demo_buffer
         self.interaction_buffer = interaction_buffer
-        self.demo_fraction = float(demo_fraction)
+        self.demo_fraction = demo_fraction if demo_fraction == "proportional" else float(demo_fraction)
         self.batch_size = batch_size
         self.keys = tuple(keys)
         self.device = None if device is None else torch.device(device)
@@ -251,9 +256,14 @@ class MixedReplay:
         return self.interaction_buffer.extend(data)
 
     def split(self, batch_size: int) -> tuple[int, int]:
-        """``(N_D, N_pi)`` for a batch of ``batch_size`` given what the buffers hold now."""
-        n_demo = round(self.demo_fraction * batch_size)
-        if len(self.demo_buffer) == 0:
+        """``(N_D, N_pi)`` for a batch of ``batch_size`` given what the buffers hold now (random when proportional)."""
+        n_stored_demo, n_stored = len(self.demo_buffer), len(self)
+        if self.demo_fraction == "proportional":
+            share = torch.tensor(n_stored_demo / max(n_stored, 1), dtype=torch.float64)
+            n_demo = int(torch.binomial(torch.tensor(float(batch_size), dtype=torch.float64), share))
+        else:
+            n_demo = round(self.demo_fraction * batch_size)
+        if n_stored_demo == 0:
             n_demo = 0
         elif len(self.interaction_buffer) == 0:
             n_demo = batch_size
