@@ -1,0 +1,262 @@
+"""The behaviour-cloning baselines (recipes/bc.py): demonstrations, the fit, a run end to end, bad configs."""
+
+from __future__ import annotations
+
+import copy
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from torchrl_silp import UR5eReachEnv
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+import bc  # noqa: E402
+from utils import make_actor_critic, make_env, make_loss  # noqa: E402
+
+CPU = torch.device("cpu")
+
+
+def compose_config(name: str, overrides: list[str]):
+    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
+        return compose(config_name=name, overrides=overrides)
+
+
+def greedy_expert(td: TensorDict) -> TensorDict:
+    """A scripted expert: the best of 38 candidate actions by the env's own one-step model."""
+    model = UR5eReachEnv(num_envs=1)
+    gen = torch.Generator().manual_seed(0)
+    candidates = torch.cat([torch.rand(32, 3, generator=gen) * 2 - 1, torch.eye(3), -torch.eye(3)])
+    obs = td["observation"]
+    states = obs.unsqueeze(-2).expand(*obs.shape[:-1], candidates.shape[0], obs.shape[-1])
+    _, reward = model.transition_reward(states, candidates.expand(*states.shape[:-1], 3))
+    return td.set("action", candidates[reward.squeeze(-1).argmax(-1)])
+
+
+@pytest.fixture(scope="module")
+def source_run(tmp_path_factory):
+    """A finished SAC run dir: its evaluated (averaged) actor imitates the greedy expert, its online actor is untrained.
+
+    Returns the run dir and the expert-imitating actor itself (not loaded from the dir).
+    """
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("source_run")
+    cfg = compose_config("sac_silp", ["env.num_envs=4", "network.hidden_sizes=[64,64]", f"run_dir={root}"])
+    env = make_env(cfg, CPU, seed=0)
+    torch.manual_seed(0)
+    actor, critic = make_actor_critic(cfg, env, CPU)
+    loss, _ = make_loss(cfg, actor, critic, env)
+    online = copy.deepcopy(loss.state_dict())
+    # the expert's states and actions, then the actor's deterministic action fitted to them
+    expert_env = UR5eReachEnv(num_envs=200, seed=123, collision_type=0)
+    with torch.no_grad():
+        data = expert_env.rollout(50, greedy_expert, break_when_any_done=False)
+    obs, act = data["observation"].reshape(-1, 15), data["action"].reshape(-1, 3)
+    opt = torch.optim.Adam(actor.parameters(), lr=3e-3)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(800):
+        idx = torch.randint(obs.shape[0], (256,), generator=gen)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            pred = actor(TensorDict(observation=obs[idx], batch_size=[256]))["action"]
+        fit = (pred - act[idx]).pow(2).mean()
+        opt.zero_grad()
+        fit.backward()
+        opt.step()
+    averaged = TensorDict.from_module(actor).data.clone()
+    (root / "checkpoint").mkdir()
+    torch.save({"loss": online, "averaged_actor": averaged}, root / "checkpoint" / "state.pt")
+    OmegaConf.save(cfg, root / "config.yaml", resolve=True)
+    return root, actor
+
+
+def test_policy_demonstrations_are_the_successful_episodes(source_run, monkeypatch):
+    root, expert = source_run
+    monkeypatch.setattr(bc, "COLLECT_BATCH", 64)  # 150 tasks in batches of 64: the last one is cut
+    policy = bc.load_source_policy(root, CPU)
+    demos, stats = bc.collect_policy_demonstrations(policy, 150, seed=5)
+
+    # independently: the expert actor itself, stepped by hand on the same tasks (3 resets of one env of 64)
+    env = UR5eReachEnv(num_envs=64, seed=5, collision_type=0)
+    batches = []
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        for _ in range(3):
+            td, steps = env.reset(), []
+            for _ in range(50):
+                td = env.step(expert(td))
+                steps.append(td.clone())
+                td = step_mdp(td)
+            batches.append(torch.stack(steps, 1))
+    ro = torch.cat(batches)[:150]
+    done = ro["next", "done"].squeeze(-1)
+    end = done.float().argmax(-1)  # every episode ends by step 50
+    rows = torch.arange(150)
+    success = ro["next", "success"].squeeze(-1)[rows, end]
+    expected = success.nonzero().squeeze(-1)
+    # the averaged actor was loaded (the untrained online one succeeds on none of these)
+    assert 30 < expected.numel() < 150
+    assert stats == {"n_attempted": 150, "n_kept": expected.numel(), "n_transitions": int((end[expected] + 1).sum()),
+                     "success_rate": expected.numel() / 150}
+    assert demos.shape[0] == stats["n_transitions"]
+    assert set(demos.keys(True, True)) >= {"observation", "action", ("next", "observation"), ("next", "reward"),
+                                           ("next", "done"), ("next", "terminated"), "episode"}
+    assert torch.equal(demos["episode"].unique(), expected)
+    for e in expected.tolist():
+        ep = demos[demos["episode"] == e]
+        steps = int(end[e]) + 1
+        assert ep.shape[0] == steps
+        # each kept episode ends in success, nothing before its end is done, and its transitions are the rollout's
+        assert ep["next", "terminated"][-1].item() and ep["next", "reward"][-1].item() == 1.0
+        assert not ep["next", "done"][:-1].any()
+        torch.testing.assert_close(ep["action"], ro["action"][e, :steps])
+        torch.testing.assert_close(ep["next", "observation"], ro["next", "observation"][e, :steps])
+
+
+BC_TINY = [
+    "n_demos=100",
+    "eval.n_tasks=50",
+    "eval.every_updates=150",
+    "checkpoint.every_updates=100",
+    "optim.n_updates=300",
+    "optim.batch_size=64",
+    "network.hidden_sizes=[64,64]",
+    "progress=false",
+    "threads=1",
+]
+
+
+@pytest.fixture(scope="module")
+def bc_run(source_run, tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("bc") / "run"
+    overrides = [*BC_TINY, f"source_run_dir={source_run[0]}", f"run_dir={run_dir}"]
+    cfg = compose_config("bc", overrides)
+    return cfg, overrides, bc.run(cfg)
+
+
+def test_bc_run_writes_a_consistent_summary(bc_run):
+    cfg, _, summary = bc_run
+    run_dir = Path(cfg.run_dir)
+    assert summary == json.loads((run_dir / "summary.json").read_text())
+    assert summary["method"] == "bc" and summary["source"] == "policy" and summary["seed"] == 0
+    assert summary["episodes"] == 0 and summary["frames"] == 0 and summary["updates"] == 300
+    cache = torch.load(run_dir / "demos.pt", weights_only=False)
+    demos = cache["demos"]
+    assert summary["n_demos_attempted"] == 100
+    assert 0 < summary["n_demos_kept"] == demos["episode"].unique().numel() < 100
+    assert summary["n_transitions"] == demos.shape[0]
+    assert summary["collection_wall_s"] == cache["collection_wall_s"] > 0
+    assert summary["train_wall_s"] == pytest.approx(summary["collection_wall_s"] + summary["bc_wall_s"])
+    history = json.loads((run_dir / "history.json").read_text())["history"]
+    assert [h["updates"] for h in history] == [150, 300]
+    assert history[0]["train_wall_s"] < history[1]["train_wall_s"] == pytest.approx(summary["train_wall_s"])
+    assert history[-1]["success_rate"] == summary["success_rate"]
+    assert OmegaConf.load(run_dir / "config.yaml").source_run_dir == cfg.source_run_dir
+
+    # the reported success rate is that of the checkpointed BC network on the same test tasks
+    actor = bc.make_bc_actor(cfg, CPU)
+    state = torch.load(run_dir / "checkpoint" / "state.pt", weights_only=False)
+    bc.make_bc_loss(actor).load_state_dict(state["loss"])
+    again = bc.evaluate(actor, n_tasks=50, seed=cfg.eval.seed)
+    assert again["success_rate"] == summary["success_rate"]
+    assert again["collision_rate"] == summary["test_collision_rate"]
+
+
+def test_bc_fits_the_demonstrated_actions(bc_run):
+    cfg, _, _ = bc_run
+    run_dir = Path(cfg.run_dir)
+    demos = torch.load(run_dir / "demos.pt", weights_only=False)["demos"]
+    torch.manual_seed(cfg.seed)  # the run's initial network
+    untrained = bc.make_bc_actor(cfg, CPU)
+    trained = bc.make_bc_actor(cfg, CPU)
+    bc.make_bc_loss(trained).load_state_dict(torch.load(run_dir / "checkpoint" / "state.pt", weights_only=False)["loss"])
+    with torch.no_grad():
+        mse = {name: (net(demos.select("observation"))["action"] - demos["action"]).pow(2).mean().item()
+               for name, net in (("untrained", untrained), ("trained", trained))}
+    assert mse["trained"] < 0.3 * mse["untrained"], mse
+
+
+def test_resume_after_completion_does_not_collect_again(bc_run):
+    cfg, overrides, summary = bc_run
+    run_dir = Path(cfg.run_dir)
+    cached = (run_dir / "demos.pt").stat().st_mtime_ns
+    proc = subprocess.run([sys.executable, str(RECIPES / "bc.py"), *overrides, "resume=true"],
+                          cwd=run_dir.parent, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "from the cache" in proc.stdout and "resumed from" in proc.stdout
+    assert (run_dir / "demos.pt").stat().st_mtime_ns == cached
+    again = json.loads((run_dir / "summary.json").read_text())
+    for key in ("collection_wall_s", "bc_wall_s", "success_rate", "n_demos_kept", "n_transitions", "updates"):
+        assert again[key] == summary[key], key
+    assert len(json.loads((run_dir / "history.json").read_text())["history"]) == 2
+    # resuming with other collection settings than the cache's is refused
+    with pytest.raises(ValueError, match="n_demos"):
+        bc.run(compose_config("bc", [*overrides, "resume=true", "n_demos=101"]))
+
+
+@pytest.mark.parametrize(
+    "override,name",
+    [
+        ("source=expert", "source"),
+        ("source_run_dir=null", "source_run_dir"),
+        ("source_run_dir=/nonexistent/run", "source_run_dir"),
+        ("source_run_dir=EMPTY", "source_run_dir"),
+        ("n_demos=0", "n_demos"),
+        ("prm_budget_s=0", "prm_budget_s"),
+        ("optim.n_updates=-1", "optim.n_updates"),
+        ("optim.lr=0", "optim.lr"),
+        ("eval.every_updates=0", "eval.every_updates"),
+        ("network.hidden_sizes=[]", "network.hidden_sizes"),
+        ("env.task_branch=back", "env.task_branch"),
+        ("device=tpu", "device"),
+    ],
+)
+def test_bad_config_is_rejected_before_work(tmp_path, source_run, override, name):
+    if override == "source_run_dir=EMPTY":  # a dir with config.yaml but no checkpoint
+        (tmp_path / "empty").mkdir()
+        (tmp_path / "empty" / "config.yaml").write_text((source_run[0] / "config.yaml").read_text())
+        override = f"source_run_dir={tmp_path / 'empty'}"
+    run_dir = tmp_path / "run"
+    cfg = compose_config("bc", [f"source_run_dir={source_run[0]}", f"run_dir={run_dir}", override])
+    with pytest.raises(ValueError, match=name):
+        bc.run(cfg)
+    assert not run_dir.exists()
+
+
+def test_a_source_without_successes_stops_the_run(tmp_path, source_run):
+    # the source run without its averaged actor: its untrained online actor is loaded, and reaches no goal
+    src = tmp_path / "online_only"
+    (src / "checkpoint").mkdir(parents=True)
+    (src / "config.yaml").write_text((source_run[0] / "config.yaml").read_text())
+    state = torch.load(source_run[0] / "checkpoint" / "state.pt", weights_only=False)
+    state["averaged_actor"] = None
+    torch.save(state, src / "checkpoint" / "state.pt")
+    cfg = compose_config("bc", [*BC_TINY, "n_demos=20", f"source_run_dir={src}", f"run_dir={tmp_path / 'run'}"])
+    with pytest.raises(RuntimeError, match="none of the 20 demonstration episodes succeeded"):
+        bc.run(cfg)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ompl") is None, reason="OMPL is not installed")
+def test_prm_source_end_to_end(tmp_path):
+    cfg = compose_config("bc", ["source=prm", "n_demos=4", "prm_budget_s=1.0", "optim.n_updates=20",
+                                "eval.every_updates=20", "eval.n_tasks=10", "network.hidden_sizes=[16]",
+                                "progress=false", "threads=1", f"run_dir={tmp_path / 'run'}"])
+    summary = bc.run(cfg)
+    demos = torch.load(tmp_path / "run" / "demos.pt", weights_only=False)["demos"]
+    assert summary["source"] == "prm" and summary["n_demos_attempted"] == 4
+    assert 0 < summary["n_demos_kept"] == demos["episode"].unique().numel() <= 4
+    assert summary["n_transitions"] == demos.shape[0]
+    # every kept episode ends in success, and only there
+    done = demos["next", "done"].reshape(-1)
+    assert int(done.sum()) == summary["n_demos_kept"]
+    assert (demos["next", "reward"].reshape(-1)[done] == 1.0).all() and demos["next", "terminated"].reshape(-1)[done].all()
+    last = torch.ones_like(done)
+    last[:-1] = demos["episode"][1:] != demos["episode"][:-1]
+    assert torch.equal(done, last)
