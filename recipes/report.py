@@ -1,0 +1,456 @@
+"""The paper's Table 1 from a sweep's results: the table beside the paper's, the learning curves, the ordering checks.
+
+    python recipes/report.py                     # --results results/table1 --out docs/results.md
+                                                 # --figure docs/table1_curves.png
+
+Reads every ``<results>/<method>/seed*/summary.json`` (and ``history.json``,
+``config.yaml``, ``sweep.json`` beside it: what ``recipes/sweep.py`` and the
+recipes write) and writes, between the markers ``<!-- table1:begin -->`` and
+``<!-- table1:end -->`` of ``--out`` (appended at its end when they are
+missing; the rest of the file is left as it is):
+
+* Table 1 in the paper's columns: success rate, training time (h:mm:ss) and
+  planning time per rollout (s), each as mean (std) over the seeds, the
+  paper's figures beside ours, the number of seeds, and a line for every row
+  with fewer than 3 seeds;
+* the learning curves (``--figure``): test success rate against training
+  episodes, mean ± std over the seeds, for every method with a history (the
+  paper's "Success rates during training");
+* the orderings the paper reports, each evaluated on our means as holds /
+  does not hold / not run;
+* the command, the results directory, the training budget
+  (``collector.total_frames`` of the runs' ``config.yaml``) and the machine
+  (from the runs' ``sweep.json``).
+
+Std is over the seeds with ddof=0 (as ``compare_runs.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import re
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from compare_runs import mean_std  # noqa: E402
+
+BEGIN, END = "<!-- table1:begin -->", "<!-- table1:end -->"
+PAPER_SEEDS = 3
+
+
+def _hms(text: str) -> int:
+    h, m, s = (int(x) for x in re.split(r"[.:]", text))
+    return 3600 * h + 60 * m + s
+
+
+# Table 1 of S. Luo and L. Schomaker, "Reinforcement Learning in Robotic Motion Planning by
+# Combined Experience-based Planning and Self-Imitation Learning", Robotics and Autonomous
+# Systems (the paper's source: /work/shared/paper/000_e96ab39deae2517e.txt, table "tab:bl"):
+# mean (std) over 3 seeds of the success rate on 1000 test reaches, the training wall time of
+# 1K epochs of 10 episodes (h:m:s; none for the PRM planners) and the planning time per rollout (s).
+PAPER_TABLE1 = {
+    "ddpg": {"label": "DDPG", "success": (0.763, 0.046), "train_s": (_hms("08:17:53"), _hms("00:23:26")), "plan_s": (0.110, 0.017)},
+    "ddpg_her": {"label": "DDPG-HER", "success": (0.532, 0.257), "train_s": (_hms("11:15:01"), _hms("03:18:38")), "plan_s": (0.126, 0.024)},
+    "ddpg_demon": {"label": "DDPG-Demon", "success": (0.707, 0.039), "train_s": (_hms("08:07:51"), _hms("00:13:21")), "plan_s": (0.107, 0.007)},
+    "ddpg_silp_plus": {"label": "DDPG-SILP+", "success": (0.954, 0.021), "train_s": (_hms("07:35:11"), _hms("00:13:50")), "plan_s": (0.114, 0.009)},
+    "sac": {"label": "SAC", "success": (0.864, 0.066), "train_s": (_hms("07:15:24"), _hms("00:48:00")), "plan_s": (0.116, 0.010)},
+    "sac_her": {"label": "SAC-HER", "success": (0.902, 0.008), "train_s": (_hms("07:25:42"), _hms("01:04:36")), "plan_s": (0.113, 0.012)},
+    "sac_demon": {"label": "SAC-Demon", "success": (0.925, 0.021), "train_s": (_hms("05:19:24"), _hms("00:06:45")), "plan_s": (0.121, 0.008)},
+    "sac_silp": {"label": "SAC-SILP", "success": (0.944, 0.004), "train_s": (_hms("06:35:07"), _hms("00:09:25")), "plan_s": (0.118, 0.003)},
+    "sac_silp_plus": {"label": "SAC-SILP+", "success": (0.973, 0.002), "train_s": (_hms("05:22:58"), _hms("00:04:26")), "plan_s": (0.130, 0.008)},
+    "prm_0.1": {"label": "PRM-0.1", "success": (0.749, 0.038), "train_s": None, "plan_s": (0.134, 0.004)},
+    "prm_1": {"label": "PRM-1", "success": (0.772, 0.067), "train_s": None, "plan_s": (1.028, 0.005)},
+    "bc_sac_silp_plus": {"label": "BC-SAC-SILP+", "success": (0.967, 0.003), "train_s": (_hms("00:38:03"), _hms("00:02:25")), "plan_s": (0.137, 0.008)},
+    "bc_prm": {"label": "BC-PRM", "success": (0.464, 0.015), "train_s": (_hms("01:32:56"), _hms("00:01:59")), "plan_s": (0.144, 0.010)},
+}
+
+
+def label(method: str) -> str:
+    return PAPER_TABLE1.get(method, {}).get("label", method)
+
+
+# ----------------------------------------------------------------- loading
+def _seed_of(path: Path) -> int:
+    match = re.fullmatch(r"seed(\d+)", path.name)
+    return int(match.group(1)) if match else -1
+
+
+def load_results(results: Path) -> dict[str, list[dict]]:
+    """``{method: [run, ...]}``, a run being ``{"seed", "dir", "summary", "history", "config", "sweep"}``.
+
+    Methods in the paper's order, then the others by name. Raises
+    ``FileNotFoundError`` when no run has a summary.
+    """
+    runs: dict[str, list[dict]] = {}
+    for summary_path in sorted(Path(results).glob("*/seed*/summary.json"), key=lambda p: (p.parents[1].name, _seed_of(p.parent))):
+        run_dir = summary_path.parent
+        history_path, config_path, sweep_path = (run_dir / n for n in ("history.json", "config.yaml", "sweep.json"))
+        runs.setdefault(run_dir.parent.name, []).append({
+            "seed": _seed_of(run_dir),
+            "dir": run_dir,
+            "summary": json.loads(summary_path.read_text()),
+            "history": json.loads(history_path.read_text()).get("history", []) if history_path.exists() else [],
+            "config": _load_yaml(config_path),
+            "sweep": json.loads(sweep_path.read_text()) if sweep_path.exists() else None,
+        })
+    if not runs:
+        raise FileNotFoundError(f"no <method>/seed*/summary.json under {results}: run recipes/sweep.py "
+                                f"with results_dir={results} first")
+    order = [m for m in PAPER_TABLE1 if m in runs] + sorted(m for m in runs if m not in PAPER_TABLE1)
+    return {m: runs[m] for m in order}
+
+
+def _load_yaml(path: Path) -> dict | None:
+    if not path.exists():
+        return None
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(OmegaConf.load(path))
+
+
+def _values(runs: list[dict], key: str) -> list[float]:
+    return [r["summary"][key] for r in runs if isinstance(r["summary"].get(key), (int, float))
+            and not isinstance(r["summary"].get(key), bool) and not math.isnan(r["summary"][key])]
+
+
+def _mean(runs: list[dict], key: str) -> float | None:
+    values = _values(runs, key)
+    return float(np.mean(values)) if values else None
+
+
+# ----------------------------------------------------------------- formatting
+def hms(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
+
+
+def _mean_std_with(values: list[float], fmt) -> str:
+    if not values:
+        return "—"
+    arr = np.asarray(values, dtype=float)
+    return fmt(arr.mean()) if len(arr) == 1 else f"{fmt(arr.mean())} ({fmt(arr.std())})"
+
+
+def _seconds_fmt(values: list[float]):
+    """Three significant digits of the mean (at least 3 decimals): 0.134, 0.00123."""
+    top = max(abs(float(np.mean(values))), 1e-12)
+    decimals = max(3, 2 - math.floor(math.log10(top)))
+    return lambda x: f"{x:.{decimals}f}"
+
+
+def _paper(method: str, key: str, fmt) -> str:
+    paper = PAPER_TABLE1.get(method)
+    if paper is None:
+        return "—"
+    if paper[key] is None:
+        return "*"
+    mean, std = paper[key]
+    return f"{fmt(mean)} ({fmt(std)})"
+
+
+def table(runs: dict[str, list[dict]]) -> str:
+    rows = [
+        "| Method | Success rate | paper | Training time (h:mm:ss) | paper | Planning time per rollout (s) | paper "
+        "| Seeds | Test collision rate | Training episodes (frames) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    methods = list(PAPER_TABLE1) + [m for m in runs if m not in PAPER_TABLE1]
+    for method in methods:
+        ours = runs.get(method, [])
+        success = mean_std(_values(ours, "success_rate")) if ours else "not run"
+        train = _values(ours, "train_wall_s")
+        train = _mean_std_with(train, hms) if train else ("*" if ours else "—")
+        plan = _values(ours, "rollout_time_per_episode_s")
+        plan = _mean_std_with(plan, _seconds_fmt(plan)) if plan else "—"
+        episodes, frames = _mean(ours, "episodes"), _mean(ours, "frames")
+        budget = "—" if episodes is None else f"{episodes:,.0f}" + ("" if frames is None else f" ({frames:,.0f})")
+        rows.append(
+            f"| {label(method)} | {success} | {_paper(method, 'success', lambda x: f'{x:.3f}')} "
+            f"| {train} | {_paper(method, 'train_s', hms)} "
+            f"| {plan} | {_paper(method, 'plan_s', lambda x: f'{x:.3f}')} "
+            f"| {len(ours)} | {mean_std(_values(ours, 'test_collision_rate')) if ours else '—'} | {budget} |"
+        )
+    return "\n".join(rows)
+
+
+def seed_notes(runs: dict[str, list[dict]]) -> list[str]:
+    notes = []
+    for method in list(PAPER_TABLE1) + [m for m in runs if m not in PAPER_TABLE1]:
+        ours = runs.get(method, [])
+        if not ours:
+            notes.append(f"- {label(method)}: not run")
+        elif len(ours) < PAPER_SEEDS:
+            seeds = ", ".join(str(r["seed"]) for r in ours)
+            notes.append(f"- {label(method)}: {len(ours)} seed{'s' if len(ours) > 1 else ''} ({seeds}); "
+                         f"the paper used {PAPER_SEEDS}")
+    return notes
+
+
+# ------------------------------------------------------------ ordering checks
+def _success(runs, method):
+    return _mean(runs.get(method, []), "success_rate")
+
+
+def _rollout(runs, method):
+    return _mean(runs.get(method, []), "rollout_time_per_episode_s")
+
+
+def _chain(runs, methods, strict: bool):
+    """``a ≥ b ≥ c`` (or ``>``) on the mean success rates, with the numbers."""
+    values = [_success(runs, m) for m in methods]
+    holds = all((a > b) if strict else (a >= b) for a, b in zip(values, values[1:]))
+    sign = " > " if strict else " ≥ "
+    return holds, sign.join(f"{label(m)} {v:.3f}" for m, v in zip(methods, values))
+
+
+def _beats_prm(runs):
+    prm_success, prm_time = _success(runs, "prm_0.1"), _rollout(runs, "prm_0.1")
+    holds, parts = True, []
+    for method in ("sac_silp_plus", "ddpg_silp_plus"):
+        success, time = _success(runs, method), _rollout(runs, method)
+        if prm_time is None or time is None:
+            return None, "no planning time per rollout recorded"
+        holds &= success > prm_success and time <= prm_time
+        parts.append(f"{label(method)} {success:.3f} in {time:.3g} s")
+    return holds, f"{'; '.join(parts)}; PRM-0.1 {prm_success:.3f} in {prm_time:.3g} s"
+
+
+CHECKS = [
+    ("SAC-SILP+ ≥ SAC-Demon ≥ SAC (success rate)", ("sac_silp_plus", "sac_demon", "sac"),
+     lambda runs: _chain(runs, ("sac_silp_plus", "sac_demon", "sac"), strict=False)),
+    ("DDPG-SILP+ > DDPG (success rate)", ("ddpg_silp_plus", "ddpg"),
+     lambda runs: _chain(runs, ("ddpg_silp_plus", "ddpg"), strict=True)),
+    ("the learned planners SAC-SILP+ and DDPG-SILP+ beat PRM-0.1 at a similar time per rollout "
+     "(a higher success rate, in at most PRM-0.1's time per rollout)", ("sac_silp_plus", "ddpg_silp_plus", "prm_0.1"),
+     _beats_prm),
+    ("BC-SAC-SILP+ > BC-PRM (success rate)", ("bc_sac_silp_plus", "bc_prm"),
+     lambda runs: _chain(runs, ("bc_sac_silp_plus", "bc_prm"), strict=True)),
+]
+
+
+def checks(runs: dict[str, list[dict]]) -> list[tuple[str, str, str]]:
+    """``[(check, "holds" | "does not hold" | "not run", the numbers)]``, on the means over seeds."""
+    out = []
+    for text, needs, evaluate in CHECKS:
+        missing = [label(m) for m in needs if _success(runs, m) is None]
+        if missing:
+            out.append((text, "not run", f"missing: {', '.join(missing)}"))
+            continue
+        holds, numbers = evaluate(runs)
+        out.append((text, "not run" if holds is None else "holds" if holds else "does not hold", numbers))
+    return out
+
+
+# --------------------------------------------------------------- the curves
+def mean_std_curve(histories: list[list[dict]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Success rate against training episodes, mean and std over the seeds at common points.
+
+    Seeds evaluated at the same episodes are averaged there; otherwise each seed
+    is interpolated (linearly, in episodes) onto the union of all the seeds'
+    points inside the range every seed covers.
+
+    Examples:
+        >>> a = [{"episodes": 10, "success_rate": 0.2}, {"episodes": 20, "success_rate": 0.6}]
+        >>> b = [{"episodes": 10, "success_rate": 0.4}, {"episodes": 20, "success_rate": 0.8}]
+        >>> x, mean, std = mean_std_curve([a, b])
+        >>> x.tolist(), mean.round(3).tolist(), std.round(3).tolist()
+        ([10.0, 20.0], [0.3, 0.7], [0.1, 0.1])
+    """
+    series = []
+    for history in histories:
+        points = sorted((p["episodes"], p["success_rate"]) for p in history
+                        if p.get("episodes") is not None and p.get("success_rate") is not None)
+        if points:
+            series.append(np.asarray(points, dtype=float).T)
+    if not series:
+        raise ValueError("no history point holds both episodes and success_rate")
+    if all(len(x) == len(series[0][0]) and np.array_equal(x, series[0][0]) for x, _ in series):
+        grid = series[0][0]
+        ys = np.stack([y for _, y in series])
+    else:
+        lo, hi = max(x[0] for x, _ in series), min(x[-1] for x, _ in series)
+        grid = np.unique(np.concatenate([x for x, _ in series]))
+        grid = grid[(grid >= lo) & (grid <= hi)]
+        ys = np.stack([np.interp(grid, x, y) for x, y in series])
+    return grid, ys.mean(0), ys.std(0)
+
+
+def plot_curves(runs: dict[str, list[dict]], path: Path) -> list[str]:
+    """The learning-curve PNG; returns the methods it plots (those with a history), none: no PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = {}
+    for method, method_runs in runs.items():
+        with contextlib.suppress(ValueError):  # no history (PRM), or none with episodes
+            curves[method] = mean_std_curve([r["history"] for r in method_runs])
+    if not curves:
+        return []
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for method, (x, mean, std) in curves.items():
+        n = sum(any(p.get("episodes") is not None for p in r["history"]) for r in runs[method])
+        (line,) = ax.plot(x, mean, marker="." if len(x) < 30 else None, label=f"{label(method)} ({n} seed{'s' if n > 1 else ''})")
+        ax.fill_between(x, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=line.get_color(), alpha=0.2)
+    ax.set_xlabel("training episodes")
+    ax.set_ylabel("test success rate")
+    ax.set_ylim(0, 1.02)
+    # the paper's x axis: epochs of 10 episodes
+    ax.secondary_xaxis("top", functions=(lambda e: e / 10, lambda p: p * 10)).set_xlabel("paper's epochs (10 episodes)")
+    ax.set_title("Success rates during training: mean ± std over seeds")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize="small")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return list(curves)
+
+
+# ------------------------------------------------------- budget and machine
+def _get(tree: dict | None, dotted: str):
+    for key in dotted.split("."):
+        if not isinstance(tree, dict) or key not in tree:
+            return None
+        tree = tree[key]
+    return tree
+
+
+# the budget of a run, as its config.yaml states it (each key where a recipe's config has it)
+BUDGET_KEYS = {
+    "collector.total_frames": "training env steps (the RL methods)",
+    "n_demos": "demonstration episodes attempted (BC)",
+    "optim.n_updates": "gradient updates (BC)",
+    "budget_s": "planning time per task, s (PRM)",
+    "eval.n_tasks": "test tasks of the final evaluation",
+}
+
+
+def config_values(runs: dict[str, list[dict]], key: str) -> str | None:
+    """``` `40000` (ddpg, sac); `160000` (sac_silp_plus)```: a config key's values over the runs that have it."""
+    groups: dict[str, list[str]] = {}
+    for method, method_runs in runs.items():
+        for value in dict.fromkeys(_get(r["config"], key) for r in method_runs):
+            if value is not None:
+                groups.setdefault(str(value), []).append(method)
+    return "; ".join(f"`{v}` ({', '.join(ms)})" for v, ms in groups.items()) or None
+
+
+def machine_lines(runs: dict[str, list[dict]]) -> list[str]:
+    groups: dict[str, list[str]] = {}
+    for method, method_runs in runs.items():
+        for r in method_runs:
+            device, threads = _get(r["config"], "device"), _get(r["config"], "threads")
+            own = f"device `{device}`, `threads={threads}`" if device is not None else "no device in the config"
+            sweep = r["sweep"]
+            if sweep is None:
+                text = f"not recorded (the run was not started by recipes/sweep.py); {own}"
+            else:
+                m, per_run, cluster = sweep.get("machine", {}), sweep.get("resources_per_run", {}), sweep.get("ray_cluster", {})
+                gpus = f", GPU {', '.join(m['gpus'])}" if m.get("gpus") else ""
+                text = (f"{m.get('cpu')} ({m.get('cpu_count')} CPUs{gpus}), torch {m.get('torch')} with "
+                        f"{m.get('torch_threads')} thread(s); {own}; Ray: {per_run.get('num_cpus')} CPU / "
+                        f"{per_run.get('num_gpus')} GPU per run, {cluster.get('CPU')} CPUs / {cluster.get('GPU')} GPUs "
+                        f"in the cluster (runs in parallel share the machine)")
+            label_ = f"{method}/seed{r['seed']}"
+            if label_ not in groups.setdefault(text, []):
+                groups[text].append(label_)
+    return [f"- {text}: {_compact(names)}" for text, names in groups.items()]
+
+
+def _compact(names: list[str]) -> str:
+    seeds: dict[str, list[str]] = {}
+    for name in names:
+        method, seed = name.split("/seed")
+        seeds.setdefault(method, []).append(seed)
+    return ", ".join(f"{m} (seeds {', '.join(s)})" if len(s) > 1 else f"{m} (seed {s[0]})" for m, s in seeds.items())
+
+
+def sweep_commands(runs: dict[str, list[dict]]) -> list[str]:
+    commands = {r["sweep"].get("sweep_command") for rs in runs.values() for r in rs if r["sweep"]}
+    return sorted(c for c in commands if c)
+
+
+# ------------------------------------------------------------------ the block
+def block(runs: dict[str, list[dict]], results: Path, figure: Path | None, out: Path, command: str,
+          plotted: list[str]) -> str:
+    lines = [
+        BEGIN,
+        "### Table 1: success rate, training time, planning time (generated)",
+        "",
+        f"Generated by `{command}` from the runs in `{results}` (every number below is read from their "
+        "`summary.json`, `history.json`, `config.yaml` and `sweep.json`, except the paper's columns: Table 1 "
+        "of Luo & Schomaker, three seeds each, 1000 test reaches, 1K epochs of 10 episodes).",
+        "",
+        table(runs),
+        "",
+        "Mean (std) over the seeds (std with ddof=0; one seed: its value). Training time is the run's "
+        "`train_wall_s` (* : the PRM planners do not train); planning time per rollout is "
+        "`rollout_time_per_episode_s`, the wall time of the batched evaluation rollout divided by its tasks.",
+        "",
+    ]
+    notes = seed_notes(runs)
+    if notes:
+        lines += [f"Rows with fewer than {PAPER_SEEDS} seeds:", "", *notes, ""]
+    lines += ["Orderings reported by the paper, on our means:", ""]
+    lines += [f"- {status}: {text} ({numbers})" for text, status, numbers in checks(runs)]
+    budget = [(key, text, config_values(runs, key)) for key, text in BUDGET_KEYS.items()]
+    lines += ["", "Budget (the runs' config.yaml; the paper: 1K epochs of 10 episodes):", ""]
+    lines += [f"- `{key}`, {text}: {values}" for key, text, values in budget if values is not None]
+    lines += ["", "Machine (each run's sweep.json and config.yaml):", "", *machine_lines(runs), ""]
+    commands = sweep_commands(runs)
+    if commands:
+        lines += ["Sweep command(s):", "", *[f"- `{c}`" for c in commands], ""]
+    if figure is not None and plotted:
+        rel = os.path.relpath(figure, out.parent)
+        lines += [f"![Success rates during training]({rel})", "",
+                  f"Test success rate against training episodes, mean ± std over seeds ({', '.join(label(m) for m in plotted)}).", ""]
+    elif figure is not None:
+        lines += ["No run has a training history: no learning-curve figure.", ""]
+    lines.append(END)
+    return "\n".join(lines)
+
+
+def write_block(path: Path, text: str) -> None:
+    """Replace the block between the markers of ``path``, or append it when they are missing."""
+    old = path.read_text() if path.exists() else ""
+    start, end = old.find(BEGIN), old.find(END)
+    if start != -1 and end > start:
+        new = old[:start] + text + old[end + len(END):]
+    else:
+        new = (old.rstrip("\n") + "\n\n" if old.strip() else "") + text + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(new)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--results", type=Path, default=Path("results/table1"), help="the sweep's results_dir")
+    parser.add_argument("--out", type=Path, default=Path("docs/results.md"), help="the markdown file to update")
+    parser.add_argument("--figure", type=Path, default=Path("docs/table1_curves.png"), help="the learning-curve PNG")
+    args = parser.parse_args(argv)
+    runs = load_results(args.results)
+    given = sys.argv[1:] if argv is None else argv
+    command = " ".join(["python recipes/report.py", *map(shlex.quote, given)])
+    plotted = plot_curves(runs, args.figure)
+    text = block(runs, args.results, args.figure, args.out, command, plotted)
+    write_block(args.out, text)
+    print(text)
+    print(f"wrote {args.out} and {args.figure}" if plotted else f"wrote {args.out}")
+    return text
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except FileNotFoundError as exc:
+        sys.exit(f"report.py: {exc}")

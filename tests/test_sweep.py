@@ -1,0 +1,168 @@
+"""recipes/sweep.py on a local Ray with a tiny grid, recipes/report.py on what it wrote, and a restart that skips."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ray = pytest.importorskip("ray")
+
+RECIPES = Path(__file__).parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+import report  # noqa: E402
+import sweep  # noqa: E402
+
+METHODS, SEEDS = ("sac", "sac_demon"), (0, 1)
+# seconds-long runs: 8 envs of 10-step episodes, two collector batches, a few gradient steps
+TINY = [
+    "env.num_envs=8",
+    "env.max_steps=10",
+    "collector.frames_per_batch=80",
+    "collector.total_frames=160",
+    "collector.init_random_frames=80",
+    "eval.n_tasks=8",
+    "eval.every_frames=80",
+    "optim.batch_size=16",
+    "replay_buffer.size=2000",
+    "replay_buffer.demo_size=2000",
+    "checkpoint.every_iters=1",
+    "network.hidden_sizes=[16,16]",
+    "threads=1",
+    "progress=false",
+]
+
+
+def sweep_config(results: Path, *extra: str, tiny: list[str] = TINY):
+    quoted = ",".join(f"'{o}'" for o in tiny)  # hydra wants list items holding "=" quoted
+    # workers reused across runs: each fresh one would import torch and the recipe again (~10 s)
+    return sweep.load_config([
+        f"results_dir={results}", f"methods=[{','.join(METHODS)}]", f"seeds=[{','.join(map(str, SEEDS))}]",
+        f"overrides.sac_silp=[{quoted}]", "fresh_worker=false", *extra,
+    ])
+
+
+def test_bad_grid_is_rejected_before_ray_starts(tmp_path, monkeypatch):
+    def no_ray(*args, **kwargs):
+        raise AssertionError("ray.init was called")
+
+    monkeypatch.setattr(ray, "init", no_ray)
+    with pytest.raises(ValueError, match=r"methods must be .*'sac_silp_plus'.*unknown: \['nope'\]"):
+        sweep.run_sweep(sweep_config(tmp_path, "methods=[sac,nope]"))
+    with pytest.raises(ValueError, match="seeds must be"):
+        sweep.run_sweep(sweep_config(tmp_path, "seeds=[0,-1]"))
+    with pytest.raises(ValueError, match="resources.num_cpus"):
+        sweep.run_sweep(sweep_config(tmp_path, "resources.num_cpus=0"))
+    # a recipe override the config does not have fails when composed, still before Ray
+    with pytest.raises(ValueError, match="do not compose.*no_such_key"):
+        sweep.run_sweep(sweep_config(tmp_path, "overrides.all=['no_such_key=1']"))
+    # the BC of SAC-SILP+ needs SAC-SILP+'s run of the same seed
+    with pytest.raises(ValueError, match="needs the finished run of sac_silp_plus"):
+        sweep.run_sweep(sweep_config(tmp_path, "methods=[bc_sac_silp_plus]"))
+    assert not ray.is_initialized()
+    assert not list(tmp_path.iterdir())
+
+
+def test_report_on_empty_results_is_a_clear_error(tmp_path):
+    (tmp_path / "results").mkdir()
+    with pytest.raises(FileNotFoundError, match=r"no <method>/seed\*/summary.json under .*results.*sweep.py"):
+        report.main(["--results", str(tmp_path / "results"), "--out", str(tmp_path / "results.md"),
+                     "--figure", str(tmp_path / "curves.png")])
+    assert not (tmp_path / "results.md").exists()
+
+
+def _cells(block: str, label: str) -> list[str]:
+    row = next(line for line in block.splitlines() if line.startswith(f"| {label} |"))
+    return [c.strip() for c in row.strip("|").split("|")]
+
+
+def _agrees(cell: str, value: float) -> bool:
+    """The cell's first number (``0.123 (0.045)`` or ``h:mm:ss (...)``) equals ``value`` to its printed precision."""
+    text = cell.split(" (")[0]
+    if ":" in text:
+        h, m, s = map(int, text.split(":"))
+        return abs(3600 * h + 60 * m + s - value) <= 0.5 + 1e-9
+    decimals = len(text.split(".")[1]) if "." in text else 0
+    return abs(float(text.replace(",", "")) - value) <= 0.5 * 10**-decimals + 1e-12
+
+
+def test_sweep_report_and_restart(tmp_path, capsys):
+    results = tmp_path / "table1"
+    ray.init(num_cpus=2, include_dashboard=False)
+    try:
+        outcome = sweep.run_sweep(sweep_config(results))
+        out = capsys.readouterr().out
+        assert [(r["method"], r["seed"], r["status"]) for r in outcome] == [
+            (m, s, "ok") for m in METHODS for s in SEEDS], out
+        summaries = {}
+        for m in METHODS:
+            for s in SEEDS:
+                run_dir = results / m / f"seed{s}"
+                summary = json.loads((run_dir / "summary.json").read_text())
+                history = json.loads((run_dir / "history.json").read_text())["history"]
+                assert summary["method"] == m and summary["seed"] == s and summary["frames"] == 160
+                assert 0 <= summary["success_rate"] <= 1 and summary["train_wall_s"] > 0
+                assert summary["episodes"] >= 16 and summary["rollout_time_per_episode_s"] > 0
+                assert [p["frames"] for p in history] == [80, 160]
+                assert all(0 <= p["success_rate"] <= 1 and p["episodes"] > 0 for p in history)
+                assert "==== sweep: " in (run_dir / "run.log").read_text()
+                record = json.loads((run_dir / "sweep.json").read_text())
+                assert record["method"] == m and [a["status"] for a in record["attempts"]] == ["ok"]
+                summaries[m, s] = summary
+        assert "[4/4] ok" in out and "sweep done: 4 ok, 0 failed, 0 skipped" in out
+
+        # the report: both rows hold the means of the summary files, and the curves are drawn
+        md, png = tmp_path / "docs" / "results.md", tmp_path / "docs" / "curves.png"
+        md.parent.mkdir()
+        md.write_text("# Results\n\nearlier sections\n\n<!-- table1:begin -->\nold table\n<!-- table1:end -->\n\nlater\n")
+        block = report.main(["--results", str(results), "--out", str(md), "--figure", str(png)])
+        text = md.read_text()
+        assert text.startswith("# Results\n\nearlier sections\n\n<!-- table1:begin -->") and text.endswith("<!-- table1:end -->\n\nlater\n")
+        assert "old table" not in text and block in text and "collector.total_frames" in block and "`160`" in block
+        for m, label in (("sac", "SAC"), ("sac_demon", "SAC-Demon")):
+            cells = _cells(block, label)
+            runs = [summaries[m, s] for s in SEEDS]
+            assert _agrees(cells[1], np.mean([r["success_rate"] for r in runs])), cells
+            assert _agrees(cells[3], np.mean([r["train_wall_s"] for r in runs])), cells
+            assert _agrees(cells[5], np.mean([r["rollout_time_per_episode_s"] for r in runs])), cells
+            assert cells[7] == "2"
+            assert cells[2] == f"{report.PAPER_TABLE1[m]['success'][0]:.3f} ({report.PAPER_TABLE1[m]['success'][1]:.3f})"
+        assert "- SAC: 2 seeds (0, 1)" in block and "- SAC-SILP+: not run" in block
+        assert "not run: SAC-SILP+ ≥ SAC-Demon ≥ SAC" in block
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+        # started again: every run is finished and skipped, nothing is rewritten
+        summary_files = [results / m / f"seed{s}" / "summary.json" for m in METHODS for s in SEEDS]
+        mtimes = [p.stat().st_mtime_ns for p in summary_files]
+        outcome = sweep.run_sweep(sweep_config(results))
+        out = capsys.readouterr().out
+        assert [r["status"] for r in outcome] == ["skipped"] * 4
+        assert "skipped 4 finished run(s)" in out and "nothing to run" in out
+        assert [p.stat().st_mtime_ns for p in summary_files] == mtimes
+
+        # without its summary, exactly that run runs again (from its checkpoint)
+        summary_files[3].unlink()
+        outcome = sweep.run_sweep(sweep_config(results))
+        out = capsys.readouterr().out
+        assert [r["status"] for r in outcome] == ["skipped"] * 3 + ["ok"]
+        assert "skipped 3 finished run(s)" in out and "resuming 1 run(s) from their checkpoint: sac_demon (seed 1)" in out
+        assert [p.stat().st_mtime_ns for p in summary_files[:3]] == mtimes[:3] and summary_files[3].exists()
+        assert "resumed from" in (results / "sac_demon" / "seed1" / "run.log").read_text()
+        record = json.loads((results / "sac_demon" / "seed1" / "sweep.json").read_text())
+        assert [a["status"] for a in record["attempts"]] == ["ok", "ok"]
+
+        # a failed run is reported and fails the run that waits for it without running it
+        bad_batch = [o.replace("frames_per_batch=80", "frames_per_batch=84") for o in TINY]  # not a multiple of 8 envs
+        failing = sweep_config(tmp_path / "failing", "methods=[bc_sac_silp_plus,sac_silp_plus]", "seeds=[0]", tiny=bad_batch)
+        outcome = sweep.run_sweep(failing)
+        out = capsys.readouterr().out
+        assert [(r["method"], r["status"]) for r in outcome] == [("sac_silp_plus", "failed"), ("bc_sac_silp_plus", "failed")]
+        assert "multiple of env.num_envs" in outcome[0]["error"]
+        assert outcome[1]["error"] == "needs sac_silp_plus/seed0, which failed"
+        assert "FAILED  sac_silp_plus seed 0: ValueError" in out and "0 ok, 2 failed" in out
+        assert not (tmp_path / "failing" / "bc_sac_silp_plus").exists()
+    finally:
+        ray.shutdown()
