@@ -1,0 +1,81 @@
+"""Time per rollout of a trained policy, one task at a time and batched, against PRM's planning time.
+
+Table 1's "planning time per rollout" of a learned planner is the wall time
+of its batched evaluation (1000 tasks in one batch) divided by the tasks. A
+planner that serves one robot sees one task at a time: this script times
+that too (``--tasks`` tasks, each the test env of its own seed: the same
+distribution), beside PRM with the given budget on the first ``--tasks`` test
+tasks (plan + execution, per task) — the paper's comparison at "a similar
+time per rollout".
+
+Run::
+
+    python benchmarks/rollout_time.py results/table1/sac_silp_plus/seed0
+    python benchmarks/rollout_time.py RUN_DIR --tasks 50 --budget 0.1 --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+from utils import load_trained_networks, make_env  # noqa: E402
+
+from torchrl_silp.eval import DEFAULT_TEST_SEED, evaluate  # noqa: E402
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="a finished training run (config.yaml + checkpoint/)")
+    parser.add_argument("--tasks", type=int, default=50, help="test tasks timed one at a time (default 50)")
+    parser.add_argument("--budget", type=float, default=0.1, help="PRM planning budget, s (default 0.1; 0: skip PRM)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = parser.parse_args(argv)
+    if args.tasks < 1:
+        parser.error(f"--tasks must be >= 1, got {args.tasks}")
+    if args.budget < 0:
+        parser.error(f"--budget must be >= 0, got {args.budget}")
+    if not (args.run_dir / "config.yaml").exists():
+        parser.error(f"{args.run_dir} holds no config.yaml (a run of recipes/sac_silp.py or recipes/sweep.py)")
+    torch.set_num_threads(args.threads)
+    cfg = OmegaConf.load(args.run_dir / "config.yaml")
+    device = torch.device("cpu")
+    actor, _, _ = load_trained_networks(cfg, make_env(cfg, device, seed=0), args.run_dir / "checkpoint", device)
+
+    # one task at a time: each a batch-1 test env of its own seed (same task distribution)
+    evaluate(actor, n_tasks=1, seed=DEFAULT_TEST_SEED, max_steps=cfg.env.max_steps)  # warm-up
+    times, successes = [], 0
+    for i in range(args.tasks):
+        out = evaluate(actor, n_tasks=1, seed=DEFAULT_TEST_SEED + 1 + i, max_steps=cfg.env.max_steps,
+                       workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch)
+        times.append(out["time_per_rollout_s"])
+        successes += int(out["success_rate"])
+    batched = evaluate(actor, n_tasks=1000, max_steps=cfg.env.max_steps, workspace_exit=cfg.env.workspace_exit,
+                       task_branch=cfg.env.task_branch)
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {args.threads}")
+    print(f"policy of {args.run_dir}")
+    print(f"  one task at a time ({args.tasks} tasks): median {statistics.median(times) * 1e3:.1f} ms per rollout, "
+          f"max {max(times) * 1e3:.1f} ms, success {successes}/{args.tasks}")
+    print(f"  batched (1000 tasks, as in Table 1): {batched['time_per_rollout_s'] * 1e3:.3f} ms per rollout, "
+          f"success {batched['success_rate']:.3f}")
+    if args.budget > 0:
+        from torchrl_silp.baselines.prm import evaluate_prm
+
+        prm = evaluate_prm(args.budget, n_tasks=args.tasks, max_steps=cfg.env.max_steps,
+                           workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch)
+        print(f"PRM-{args.budget:g} on the first {args.tasks} test tasks: {prm['time_per_rollout_s'] * 1e3:.1f} ms per rollout "
+              f"(planning mean {prm['planning_time_s'] * 1e3:.1f} ms, max {prm['planning_time_max_s'] * 1e3:.1f} ms), "
+              f"success {prm['success_rate']:.3f}")
+
+
+if __name__ == "__main__":
+    main()
