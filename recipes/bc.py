@@ -26,28 +26,28 @@ for sweeps that call it in-process. Configuration: ``recipes/config/bc.yaml``.
 from __future__ import annotations
 
 import os
-import random
 import sys
 import time
 import warnings
 from pathlib import Path
 
 import hydra
-import numpy as np
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torch import optim
 from torchrl.objectives import BCLoss
 
 sys.path.insert(0, str(Path(__file__).parent))
 from utils import (  # noqa: E402
     check_choice,
+    check_device,
     checkpoint_exists,
     load_trained_networks,
     make_actor_critic,
     make_env,
+    start_run,
     write_json,
 )
 
@@ -93,8 +93,7 @@ def validate(cfg: DictConfig) -> None:
         raise ValueError(f"network.hidden_sizes must be a non-empty list of positive ints, got {sizes!r}")
     check_choice("env.workspace_exit", cfg.env.workspace_exit, WORKSPACE_EXIT_MODES)
     check_choice("env.task_branch", cfg.env.task_branch, TASK_BRANCHES)
-    if cfg.device not in ("cpu", "cuda", "auto") and not str(cfg.device).startswith("cuda:"):
-        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {cfg.device!r}")
+    check_device(cfg.device)
     if cfg.source == "policy":
         src = cfg.source_run_dir
         if not src:
@@ -238,15 +237,7 @@ def make_bc_loss(actor) -> BCLoss:
 def run(cfg: DictConfig) -> dict:
     """Collect (or load) the demonstrations, fit the BC policy, evaluate, checkpoint, report. Returns the summary."""
     validate(cfg)
-    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    random.seed(cfg.seed)
-    run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
+    device, run_dir = start_run(cfg)
     ckpt = run_dir / "checkpoint" / "state.pt"
 
     cache = demonstrations(cfg, run_dir, device)

@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import random
 import time
-from pathlib import Path
 
-import numpy as np
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
@@ -27,6 +24,7 @@ from utils import (
     EXPLORATION_MODES,
     LOGGER_BACKENDS,
     check_choice,
+    check_device,
     EpisodeAssembler,
     checkpoint_exists,
     cut_episodes,
@@ -41,6 +39,7 @@ from utils import (
     make_optimizers,
     plot_learning_curve,
     save_checkpoint,
+    start_run,
     write_json,
 )
 
@@ -93,27 +92,14 @@ def validate(cfg: DictConfig) -> None:
     decay = cfg.eval.get("actor_average_decay", None)
     if decay is not None and (isinstance(decay, bool) or not isinstance(decay, (int, float)) or not 0 < decay < 1):
         raise ValueError(f"eval.actor_average_decay must be null or a number in (0, 1), got {decay!r}")
-    if cfg.device not in ("cpu", "cuda", "auto") and not str(cfg.device).startswith("cuda:"):
-        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {cfg.device!r}")
+    check_device(cfg.device)
 
 
 def train(cfg: DictConfig) -> dict:
     """Train, evaluate on the fixed test tasks, checkpoint, report. Returns the summary dict."""
     validate(cfg)
-    device = torch.device(
-        ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
-    )
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    random.seed(cfg.seed)
-    run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    device, run_dir = start_run(cfg)
     ckpt_dir = run_dir / "checkpoint"
-    # the resolved config beside the results: what rebuilds the networks from the checkpoint
-    # (recipes/bc.py, diagnose.py) and what a report cites
-    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
 
     env = make_env(cfg, device, seed=cfg.seed)
     actor, critic = make_actor_critic(cfg, env, device)

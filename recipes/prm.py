@@ -19,11 +19,10 @@ import sys
 from pathlib import Path
 
 import hydra
-import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
-from utils import check_choice, write_json  # noqa: E402
+from utils import check_choice, check_device, start_run, write_json  # noqa: E402
 
 from torchrl_silp.baselines import evaluate_prm  # noqa: E402
 from torchrl_silp.envs.reach import TASK_BRANCHES, WORKSPACE_EXIT_MODES  # noqa: E402
@@ -43,19 +42,13 @@ def validate(cfg: DictConfig) -> None:
             raise ValueError(f"{name} must be true or false, got {cfg[name]!r}")
     check_choice("env.workspace_exit", cfg.env.workspace_exit, WORKSPACE_EXIT_MODES)
     check_choice("env.task_branch", cfg.env.task_branch, TASK_BRANCHES)
-    if cfg.device not in ("cpu", "cuda", "auto") and not str(cfg.device).startswith("cuda:"):
-        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {cfg.device!r}")
+    check_device(cfg.device)
 
 
 def run(cfg: DictConfig) -> dict:
     """Plan and execute every test task, report. Returns the summary dict."""
     validate(cfg)
-    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
+    device, run_dir = start_run(cfg)  # (OMPL has its own generator, seeded from cfg.seed per plan)
     metrics = evaluate_prm(
         cfg.budget_s,
         n_tasks=cfg.eval.n_tasks,

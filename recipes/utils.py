@@ -5,10 +5,13 @@ from __future__ import annotations
 import json
 import math
 import os
+import random
 import shutil
 from pathlib import Path
 
+import numpy as np
 import torch
+from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModule, TensorDictSequential
 from tensordict.nn.distributions import NormalParamExtractor
@@ -31,6 +34,32 @@ LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "", None)  # "" or null: no lo
 def check_choice(name: str, value, allowed) -> None:
     if value not in allowed:
         raise ValueError(f"{name} must be one of {tuple(allowed)}, got {value!r}")
+
+
+def check_device(value) -> None:
+    if value not in ("cpu", "cuda", "auto") and not str(value).startswith("cuda:"):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {value!r}")
+
+
+def start_run(cfg) -> tuple[torch.device, Path]:
+    """What every recipe does first: ``(device, run_dir)``.
+
+    Resolves ``cfg.device`` ("auto": CUDA when there is one), sets torch's
+    threads (``cfg.threads``, 0 leaves the default), seeds torch, numpy and
+    ``random`` with ``cfg.seed``, creates ``cfg.run_dir`` and saves the resolved
+    config there as ``config.yaml``: what rebuilds a run's networks from its
+    checkpoint (``load_trained_networks``) and what a report cites.
+    """
+    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    random.seed(cfg.seed)
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
+    return device, run_dir
 
 
 # ---------------------------------------------------------------- environment
