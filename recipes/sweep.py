@@ -24,6 +24,11 @@ the exit status is 1 if any failed. Each task runs in a fresh worker process
 (``fresh_worker=true``, Ray's ``max_calls=1``), so no torch or recipe state
 (thread count, TorchRL's timers, cached allocations, the recipe code as it was
 imported) carries over from one run into the next.
+
+Without ``ray.address`` the sweep starts a local Ray and stops it when it
+ends, with whatever other drivers had queued on it. Several sweeps sharing
+one machine's CPUs: ``ray start --head --num-cpus N`` first, then every sweep
+with ``ray.address=auto``.
 """
 
 from __future__ import annotations
