@@ -48,7 +48,7 @@ from utils import (  # noqa: E402
     make_actor_critic,
     make_env,
     start_run,
-    write_json,
+    write_results,
 )
 
 from torchrl_silp import UR5eReachEnv  # noqa: E402
@@ -326,9 +326,7 @@ def run(cfg: DictConfig) -> dict:
         "episodes": 0,  # BC never interacts with the training env
         "frames": 0,
     }
-    write_json(run_dir / "summary.json", summary)
-    write_json(run_dir / "history.json", {"history": history})
-    print("\n".join(f"{k:>28s}: {v}" for k, v in summary.items()))
+    write_results(run_dir, summary, history)
     return summary
 
 

@@ -40,7 +40,7 @@ from utils import (
     plot_learning_curve,
     save_checkpoint,
     start_run,
-    write_json,
+    write_results,
 )
 
 
@@ -292,11 +292,9 @@ def train(cfg: DictConfig) -> dict:
         "rollout_time_per_episode_s": final["time_per_rollout_s"],
         "demos_stored": len(buffers.demo_buffer),
     }
-    write_json(run_dir / "summary.json", summary)
-    write_json(run_dir / "history.json", {"history": history})
     plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
     save_rollout_png(env.base_env, rollout[:4], run_dir / "test_rollouts.png")
-    print("\n".join(f"{k:>28s}: {v}" for k, v in summary.items()))
+    write_results(run_dir, summary, history)
     return summary
 
 

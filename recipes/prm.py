@@ -22,7 +22,7 @@ import hydra
 from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
-from utils import check_choice, check_device, start_run, write_json  # noqa: E402
+from utils import check_choice, check_device, start_run, write_results  # noqa: E402
 
 from torchrl_silp.baselines import evaluate_prm  # noqa: E402
 from torchrl_silp.envs.reach import TASK_BRANCHES, WORKSPACE_EXIT_MODES  # noqa: E402
@@ -80,9 +80,7 @@ def run(cfg: DictConfig) -> dict:
         "episodes": 0,
         "frames": 0,
     }
-    write_json(run_dir / "summary.json", summary)
-    write_json(run_dir / "history.json", {"history": []})
-    print("\n".join(f"{k:>30s}: {v}" for k, v in summary.items()))
+    write_results(run_dir, summary, history=[])  # an online planner has no learning curve
     return summary
 
 

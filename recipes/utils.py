@@ -435,3 +435,10 @@ def plot_learning_curve(history: list[dict], path: Path, label: str) -> Path:
 def write_json(path: Path, payload: dict) -> None:
     Path(path).write_text(json.dumps(payload, indent=2, default=float))
 
+
+def write_results(run_dir: Path, summary: dict, history: list[dict]) -> None:
+    """What every recipe leaves for a sweep and its report: ``summary.json`` and ``history.json``; prints the summary."""
+    write_json(Path(run_dir) / "summary.json", summary)
+    write_json(Path(run_dir) / "history.json", {"history": history})
+    print("\n".join(f"{k:>30s}: {v}" for k, v in summary.items()))
+
