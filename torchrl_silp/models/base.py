@@ -1,0 +1,371 @@
+"""The task-model interface: everything SILP+ needs to know about a goal-conditioned task.
+
+A task model is stateless and batched. A *state* is a TensorDict holding the
+model's named keys (:attr:`TaskModel.state_keys`): the configuration the
+planner connects (``"joint_position"``), the goal the arm achieves there
+(``"achieved_goal"``, e.g. the TCP), the scene that stays fixed during an
+episode (:attr:`TaskModel.scene_keys`, e.g. ``"obstacle"``) and the goal to
+reach (``"desired_goal"``), the names TorchRL's ``HERReplayBuffer`` and
+Gymnasium-Robotics use. Components (planner, demo buffer, loss, exploration,
+relabelling, evaluation) read these names and call the model; none of them
+knows a robot or an index into a flat observation. The flat ``"observation"``
+the networks read is built from the names by TorchRL's
+:class:`~torchrl.envs.CatTensors` (:meth:`TaskModel.observation_transform`).
+
+A robot task implements the abstract members (kinematics, collision test of
+configurations, its clearance, task sampling); transition, reward, the swept
+collision test of a motion and relabelling follow from them here.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Binary, Bounded, Composite, Unbounded
+from torchrl.envs import CatTensors
+
+__all__ = ["TaskModel", "CONFIG_KEY", "ACHIEVED_GOAL_KEY", "DESIRED_GOAL_KEY", "GOAL_CONFIG_KEY"]
+
+CONFIG_KEY = "joint_position"
+ACHIEVED_GOAL_KEY = "achieved_goal"
+DESIRED_GOAL_KEY = "desired_goal"
+GOAL_CONFIG_KEY = "goal_joint_position"
+
+# configurations per collision-kernel call: bounds the (configurations x spheres) temporaries
+_CHUNK = 32768
+
+
+def _check_tensor(name: str, value, last_dim: int | None = None) -> None:
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if not value.is_floating_point():
+        raise TypeError(f"{name} must be a floating tensor, got {value.dtype}")
+    if last_dim is not None and value.shape[-1:] != (last_dim,):
+        raise ValueError(f"{name} must have shape (..., {last_dim}), got {tuple(value.shape)}")
+
+
+class TaskModel(ABC):
+    """A goal-conditioned reaching task among obstacles: f_s, f_r, collisions, goals.
+
+    Subclasses set :attr:`config_dim`, :attr:`goal_dim`, :attr:`scene_shapes`,
+    :attr:`config_low` / :attr:`config_high` and :attr:`action_scale`, and
+    implement :meth:`achieved_goal`, :meth:`collision_flags`, :meth:`clearance`,
+    :meth:`lipschitz` and :meth:`sample_tasks`.
+
+    The reward of the paper (sec. 3.1): ``collision_reward`` when the motion
+    collides, ``success_reward`` when the achieved goal is within
+    ``success_distance`` of the desired goal, else minus that distance.
+
+    A motion (a step, a roadmap edge) is judged along its whole joint-space
+    segment, not only where it ends (:meth:`motion_collision_flags`): evenly
+    spaced configurations no more than ``motion_resolution`` apart are
+    checked, each with a margin of ``L * motion_resolution / 2`` (``L`` from
+    :meth:`lipschitz`), so that every point between two samples is proven
+    free. With ``conservative=False`` the samples are checked exactly (the
+    paper's subdivision check, which can miss a graze between two samples).
+    """
+
+    config_key: str = CONFIG_KEY
+    achieved_goal_key: str = ACHIEVED_GOAL_KEY
+    desired_goal_key: str = DESIRED_GOAL_KEY
+    goal_config_key: str = GOAL_CONFIG_KEY
+    #: key -> trailing shape of the scene entries (constant during an episode)
+    scene_shapes: dict[str, tuple[int, ...]] = {}
+    config_dim: int
+    goal_dim: int
+    collision_reward: float = -10.0
+    success_reward: float = 1.0
+    #: names of the bits of :meth:`collision_flags`, lowest bit first
+    collision_reasons: tuple[str, ...] = ()
+
+    def __init__(
+        self,
+        *,
+        success_distance: float = 0.05,
+        motion_resolution: float = 0.01,
+        conservative: bool = True,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ):
+        if isinstance(success_distance, bool) or not isinstance(success_distance, (int, float)) or not (
+            math.isfinite(success_distance) and success_distance > 0
+        ):
+            raise ValueError(f"success_distance must be a positive number of metres, got {success_distance!r}")
+        if isinstance(motion_resolution, bool) or not isinstance(motion_resolution, (int, float)) or not (
+            math.isfinite(motion_resolution) and motion_resolution > 0
+        ):
+            raise ValueError(f"motion_resolution must be a positive number of radians, got {motion_resolution!r}")
+        if not isinstance(conservative, bool):
+            raise TypeError(f"conservative must be a bool, got {conservative!r}")
+        if dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        self.success_distance = float(success_distance)
+        self.motion_resolution = float(motion_resolution)
+        self.conservative = conservative
+        self.device = torch.device("cpu" if device is None else device)
+        self.dtype = dtype
+
+    # ------------------------------------------------------------ names
+    @property
+    def scene_keys(self) -> tuple[str, ...]:
+        return tuple(self.scene_shapes)
+
+    @property
+    def action_dim(self) -> int:
+        return self.config_dim
+
+    @property
+    def state_keys(self) -> tuple[str, ...]:
+        """The named parts of a state, in the order of the flat observation."""
+        return (self.config_key, self.achieved_goal_key, *self.scene_keys, self.desired_goal_key)
+
+    @property
+    def observation_keys(self) -> tuple[str, ...]:
+        return self.state_keys
+
+    def observation_transform(self, out_key: str = "observation") -> CatTensors:
+        """The :class:`~torchrl.envs.CatTensors` that builds the flat observation from the named keys.
+
+        The named keys are kept (``del_keys=False``): components read them.
+        """
+        return CatTensors(in_keys=list(self.observation_keys), out_key=out_key, del_keys=False, sort=False)
+
+    def observation(self, state: TensorDictBase) -> torch.Tensor:
+        """The flat observation of ``state`` (what :meth:`observation_transform` writes)."""
+        return torch.cat([state.get(k).reshape(*state.batch_size, -1) for k in self.observation_keys], dim=-1)
+
+    def state_spec(self, batch_size: torch.Size, device: torch.device) -> Composite:
+        """Specs of the named state keys, the goal configuration and the flags an env writes."""
+        b, f = tuple(batch_size), dict(dtype=self.dtype, device=device)
+        entries = {
+            self.config_key: Bounded(
+                low=self.config_low.expand(*b, self.config_dim).to(device),
+                high=self.config_high.expand(*b, self.config_dim).to(device),
+                shape=(*b, self.config_dim), **f,
+            ),
+            self.achieved_goal_key: Unbounded(shape=(*b, self.goal_dim), **f),
+            self.desired_goal_key: Unbounded(shape=(*b, self.goal_dim), **f),
+            self.goal_config_key: Unbounded(shape=(*b, self.config_dim), **f),
+        }
+        for key, shape in self.scene_shapes.items():
+            entries[key] = Unbounded(shape=(*b, *shape), **f)
+        return Composite(entries, shape=b, device=device)
+
+    def flag_spec(self, batch_size: torch.Size, device: torch.device) -> Composite:
+        b = tuple(batch_size)
+        return Composite(
+            collision=Binary(n=1, shape=(*b, 1), dtype=torch.bool, device=device),
+            success=Binary(n=1, shape=(*b, 1), dtype=torch.bool, device=device),
+            collision_reason=Bounded(
+                low=0, high=2 ** max(len(self.collision_reasons), 1) - 1, shape=(*b, 1), dtype=torch.uint8, device=device
+            ),
+            shape=b,
+            device=device,
+        )
+
+    # --------------------------------------------------------- abstract
+    config_low: torch.Tensor
+    config_high: torch.Tensor
+    action_scale: float
+
+    @abstractmethod
+    def achieved_goal(self, config: torch.Tensor) -> torch.Tensor:
+        """The goal a configuration achieves (e.g. the TCP position): ``(..., config_dim) -> (..., goal_dim)``."""
+
+    @abstractmethod
+    def collision_flags(
+        self, config: torch.Tensor, scene: TensorDictBase, margin: dict[str, float] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Collision bit flags ``(..., 1)`` (uint8, bits named by :attr:`collision_reasons`) and achieved goals.
+
+        Args:
+            config: ``(..., config_dim)`` configurations.
+            scene: TensorDict with the scene keys, batch shape ``config.shape[:-1]``.
+            margin: per-reason clearance (metres) a configuration must keep to count as free;
+                ``None`` or 0: exact.
+        """
+
+    @abstractmethod
+    def clearance(self, config: torch.Tensor, scene: TensorDictBase) -> torch.Tensor:
+        """Per-reason clearance ``(..., R)`` in metres (negative: that reason collides)."""
+
+    @abstractmethod
+    def lipschitz(self) -> dict[str, float]:
+        """Per-reason bound on how far the checked geometry moves per radian (max-norm of the joint step)."""
+
+    @abstractmethod
+    def sample_tasks(self, n: int, generator: torch.Generator | None = None) -> TensorDict:
+        """``n`` tasks: a TensorDict ``[n]`` with the state keys and the goal configuration.
+
+        Start and goal configurations keep the motion check's margin (:meth:`motion_margin`),
+        so every motion out of them can be judged.
+        """
+
+    # --------------------------------------------------------- provided
+    def to(self, device: torch.device | str) -> "TaskModel":
+        """Move the model's tensors to ``device`` (in place); returns the model."""
+        self.device = torch.device(device)
+        return self
+
+    def motion_margin(self, resolution: float | None = None) -> dict[str, float]:
+        """The per-reason margins that make samples ``resolution`` apart cover a whole segment."""
+        if not self.conservative:
+            return {name: 0.0 for name in self.collision_reasons}
+        h = self.motion_resolution if resolution is None else float(resolution)
+        return {name: bound * h / 2 for name, bound in self.lipschitz().items()}
+
+    def collides(self, config: torch.Tensor, scene: TensorDictBase) -> torch.Tensor:
+        """Whether configurations collide (exactly, no margin): bool ``config.shape[:-1]``."""
+        return self.collision_flags(config, scene)[0].squeeze(-1) != 0
+
+    def next_config(self, config: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``config + action_scale * clip(action, -1, 1)``, clipped to the joint limits."""
+        _check_tensor("action", action, self.action_dim)
+        step = action.to(config.dtype).clamp(-1.0, 1.0) * self.action_scale
+        return torch.minimum(torch.maximum(config + step, self.config_low), self.config_high)
+
+    def motion_collision_flags(
+        self, config_from: torch.Tensor, config_to: torch.Tensor, scene: TensorDictBase,
+        resolution: float | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Collision flags of the straight joint-space motions ``config_from -> config_to``.
+
+        Checks ``max(ceil(span / resolution), 1) + 1`` evenly spaced configurations per motion
+        (``span`` the largest joint difference of the batch), both ends included, each with
+        :meth:`motion_margin`; the flags are OR-ed over the samples.
+
+        Returns:
+            flags ``(..., 1)`` (uint8) and the achieved goal at ``config_to`` ``(..., goal_dim)``.
+        """
+        h = self.motion_resolution if resolution is None else float(resolution)
+        batch = config_from.shape[:-1]
+        delta = config_to - config_from
+        span = float(delta.abs().amax()) if delta.numel() else 0.0
+        n = max(int(math.ceil(span / h - 1e-9)), 1) + 1
+        t = torch.linspace(0, 1, n, dtype=config_from.dtype, device=config_from.device).view(n, *([1] * len(batch)), 1)
+        samples = config_from + t * delta  # (n, ..., D)
+        if scene.batch_size != batch:
+            scene = scene.expand(*batch)
+        scene_n = scene.unsqueeze(0).expand(n, *batch)
+        flags, goals = self.collision_flags(samples, scene_n, self.motion_margin(h))
+        combined = flags[0]
+        for k in range(1, n):
+            combined = combined | flags[k]
+        return combined, goals[-1]
+
+    def segment_collision_free(
+        self, config_from: torch.Tensor, config_to: torch.Tensor, scene: TensorDictBase,
+        resolution: float | None = None,
+    ) -> torch.Tensor:
+        """A flat batch of segments ``(P, D)``, each sampled at its own count (ragged): bool ``(P,)``.
+
+        The predicate of :meth:`motion_collision_flags` on each segment alone; a batch
+        costs the sum of its segments' counts, not the longest one's count times ``P``.
+        """
+        h = self.motion_resolution if resolution is None else float(resolution)
+        if isinstance(h, bool) or not (math.isfinite(h) and h > 0):
+            raise ValueError(f"resolution must be a positive number of radians, got {resolution!r}")
+        P = config_from.shape[0]
+        device = config_from.device
+        if P == 0:
+            return torch.ones(0, dtype=torch.bool, device=device)
+        delta = config_to - config_from
+        # float64 for the count, as motion_collision_flags computes it on the host
+        span = delta.abs().amax(-1).double()
+        n_seg = torch.ceil(span / h - 1e-9).clamp(min=1).long()
+        count = n_seg + 1
+        total = int(count.sum())
+        edge = torch.repeat_interleave(torch.arange(P, device=device), count, output_size=total)
+        first = torch.cumsum(count, 0) - count
+        k = torch.arange(total, device=device) - first[edge]
+        t = (k.to(config_from.dtype) / n_seg[edge].to(config_from.dtype)).unsqueeze(-1)
+        margin = self.motion_margin(h)
+        hit = torch.zeros(P, dtype=torch.bool, device=device)
+        for lo in range(0, total, _CHUNK):
+            e = edge[lo : lo + _CHUNK]
+            q = config_from[e] + t[lo : lo + _CHUNK] * delta[e]
+            flags, _ = self.collision_flags(q, scene[e], margin)
+            hit.index_fill_(0, e[flags.squeeze(-1) != 0], True)
+        return ~hit
+
+    def transition(self, state: TensorDictBase, action: torch.Tensor) -> TensorDict:
+        """The kinematic transition f_s: the next state (configuration and achieved goal; scene and goal kept)."""
+        self._check_state(state, "state")
+        config = self.next_config(state.get(self.config_key), action)
+        out = state.select(*self.state_keys).clone(False)
+        out.set(self.config_key, config)
+        out.set(self.achieved_goal_key, self.achieved_goal(config).to(config.dtype))
+        return out
+
+    def outcome(self, state: TensorDictBase, next_state: TensorDictBase) -> tuple[torch.Tensor, ...]:
+        """``(reward, collision, success, collision_reason)`` of moving from ``state`` to ``next_state``, each ``(..., 1)``.
+
+        The motion collides when its segment does (:meth:`motion_collision_flags`).
+        """
+        self._check_state(state, "state")
+        self._check_state(next_state, "next_state")
+        scene = state.select(*self.scene_keys)
+        flags, goal = self.motion_collision_flags(state.get(self.config_key), next_state.get(self.config_key), scene)
+        return self.score(flags, goal.to(next_state.get(self.desired_goal_key).dtype), next_state.get(self.desired_goal_key))
+
+    def reward(self, state: TensorDictBase, next_state: TensorDictBase) -> torch.Tensor:
+        """The reward f_r ``(..., 1)`` of moving from ``state`` to ``next_state``."""
+        return self.outcome(state, next_state)[0]
+
+    def step(self, state: TensorDictBase, action: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`transition` and :meth:`outcome` in one pass: ``(next_state, reward, collision, success, flags)``.
+
+        The motion check computes the achieved goal of the end configuration on its way,
+        so the kinematics run once.
+        """
+        self._check_state(state, "state")
+        config = state.get(self.config_key)
+        nxt = self.next_config(config, action)
+        flags, goal = self.motion_collision_flags(config, nxt, state.select(*self.scene_keys))
+        out = state.select(*self.state_keys).clone(False)
+        out.set(self.config_key, nxt)
+        out.set(self.achieved_goal_key, goal.to(nxt.dtype))
+        reward, collision, success, flags = self.score(flags, out.get(self.achieved_goal_key), out.get(self.desired_goal_key))
+        return out, reward, collision, success, flags
+
+    def score(self, flags: torch.Tensor, achieved: torch.Tensor, desired: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``(reward, collision, success, flags)`` from collision flags and goals."""
+        collision = flags != 0
+        dist = (achieved - desired).norm(dim=-1, keepdim=True)
+        success = (dist < self.success_distance) & ~collision
+        reward = torch.where(
+            collision,
+            torch.full_like(dist, self.collision_reward),
+            torch.where(success, torch.full_like(dist, self.success_reward), -dist),
+        )
+        return reward, collision, success, flags
+
+    def goal_reward(self, achieved: torch.Tensor, desired: torch.Tensor) -> torch.Tensor:
+        """The reward of a collision-free step that achieves ``achieved`` while ``desired`` is the goal."""
+        dist = (achieved - desired).norm(dim=-1, keepdim=True)
+        return torch.where(dist < self.success_distance, torch.full_like(dist, self.success_reward), -dist)
+
+    def relabel(self, state: TensorDictBase, goal: torch.Tensor) -> TensorDictBase:
+        """``state`` with ``goal`` as its desired goal (a shallow copy)."""
+        _check_tensor("goal", goal, self.goal_dim)
+        out = state.clone(False)
+        out.set(self.desired_goal_key, goal.to(state.get(self.desired_goal_key).dtype).expand_as(state.get(self.desired_goal_key)))
+        return out
+
+    def state_at(self, config: torch.Tensor, scene: TensorDictBase, desired_goal: torch.Tensor) -> TensorDict:
+        """A state TensorDict from a configuration, its scene and a goal (the achieved goal computed)."""
+        out = scene.select(*self.scene_keys).clone(False)
+        out.set(self.config_key, config)
+        out.set(self.achieved_goal_key, self.achieved_goal(config).to(config.dtype))
+        out.set(self.desired_goal_key, desired_goal)
+        return out
+
+    def _check_state(self, state, name: str) -> None:
+        if not isinstance(state, TensorDictBase):
+            raise TypeError(f"{name} must be a TensorDict with the keys {self.state_keys}, got {type(state).__name__}")
+        missing = [k for k in self.state_keys if k not in state.keys()]
+        if missing:
+            raise KeyError(f"{name} lacks the keys {missing} (a state holds {self.state_keys})")

@@ -1,0 +1,209 @@
+"""SILP+ as TorchRL transforms: collision handling, the goal-relative input, perception noise.
+
+Each works on any env whose base env holds a :class:`~torchrl_silp.models.TaskModel`
+(``env.base_env.model``) and keeps its state under the model's names, such as
+:class:`~torchrl_silp.envs.ReachEnv`; the model may also be passed explicitly.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Binary, Composite, Unbounded
+from torchrl.envs import Transform
+
+__all__ = ["CollisionHandling", "GoalRelative", "PerceptionNoise", "COLLISION_TYPES"]
+
+COLLISION_TYPES = (0, 1, 2)
+
+
+class _ModelTransform(Transform):
+    def __init__(self, model=None, **kwargs):
+        super().__init__(**kwargs)
+        self._model = model
+
+    @property
+    def model(self):
+        if self._model is not None:
+            return self._model
+        parent = self.parent
+        base = getattr(parent, "base_env", parent)
+        model = getattr(base, "model", None)
+        if model is None:
+            raise RuntimeError(
+                f"{type(self).__name__} needs a task model: pass model=... or use it on an env whose base env has .model"
+            )
+        return model
+
+
+class CollisionHandling(_ModelTransform):
+    """The paper's collision handling (sec. 4.3) on an env that only reports collisions.
+
+    * ``0``: a collision terminates the episode (the next state is the colliding one).
+    * ``1``: the arm is put back to the state before the collision (configuration and
+      achieved goal) and the episode goes on; ``("next", "discard")`` flags the
+      transition so the replay buffer drops it.
+    * ``2``: as 1, but the transition is kept for learning (the paper's choice).
+
+    Writes ``"discard"`` (bool ``(..., 1)``) for every type. Reads ``("next", "collision")``.
+
+    Args:
+        collision_type: 0, 1 or 2.
+        model: the task model (whose configuration and achieved-goal keys are put back);
+            read from the parent env's base env when not given.
+
+    Examples:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_silp import CollisionHandling
+        >>> from torchrl_silp.envs import ReachEnv
+        >>> from torchrl_silp.models import UR5eReach
+        >>> env = TransformedEnv(ReachEnv(UR5eReach(), num_envs=8, seed=0), CollisionHandling(2))
+        >>> check_env_specs(env, seed=0)
+        >>> td = env.rollout(20)
+        >>> moved_back = td["next", "collision"].squeeze(-1)
+        >>> bool((td["next", "joint_position"][moved_back] == td["joint_position"][moved_back]).all())
+        True
+    """
+
+    def __init__(self, collision_type: int = 2, model=None):
+        if isinstance(collision_type, bool) or collision_type not in COLLISION_TYPES:
+            raise ValueError(f"collision_type must be one of {COLLISION_TYPES}, got {collision_type!r}")
+        super().__init__(model, in_keys=[], out_keys=["discard"])
+        self.collision_type = collision_type
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        collision = next_tensordict.get("collision")
+        if self.collision_type == 0:
+            terminated = next_tensordict.get("terminated") | collision
+            truncated = next_tensordict.get("truncated") & ~terminated
+            next_tensordict.set("terminated", terminated)
+            next_tensordict.set("truncated", truncated)
+            next_tensordict.set("done", terminated | truncated)
+            next_tensordict.set("discard", torch.zeros_like(collision))
+            return next_tensordict
+        model = self.model
+        for key in (model.config_key, model.achieved_goal_key):
+            new = next_tensordict.get(key)
+            shape = (*collision.shape[:-1], *([1] * (new.dim() - collision.dim() + 1)))
+            next_tensordict.set(key, torch.where(collision.reshape(shape), tensordict.get(key).to(new.dtype), new))
+        discard = collision.clone() if self.collision_type == 1 else torch.zeros_like(collision)
+        next_tensordict.set("discard", discard)
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        done = tensordict_reset.get("done")
+        tensordict_reset.set("discard", torch.zeros_like(done))
+        return tensordict_reset
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        done = self.parent.full_done_spec["done"] if self.parent is not None else None
+        shape = done.shape if done is not None else (*observation_spec.shape, 1)
+        observation_spec["discard"] = Binary(n=1, shape=shape, dtype=torch.bool, device=observation_spec.device)
+        return observation_spec
+
+
+class GoalRelative(_ModelTransform):
+    """Adds the vector from the achieved goal to the desired goal, ``"goal_offset"``.
+
+    Success is decided at the scale of this difference (5 cm for the reach tasks),
+    which an MLP reading the two positions separately must learn to subtract. Put it
+    before the observation's :class:`~torchrl.envs.CatTensors` and list
+    ``"goal_offset"`` there, or give the networks ``"goal_offset"`` as a second input.
+
+    Args:
+        model: the task model (for the key names and the goal size); read from the parent
+            env's base env when not given.
+        out_key: where to write the offset.
+
+    Examples:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_silp import GoalRelative, UR5eReachEnv
+        >>> env = TransformedEnv(UR5eReachEnv(num_envs=4, seed=0), GoalRelative())
+        >>> check_env_specs(env, seed=0)
+        >>> td = env.reset()
+        >>> bool((td["goal_offset"] == td["desired_goal"] - td["achieved_goal"]).all())
+        True
+    """
+
+    def __init__(self, model=None, out_key: str = "goal_offset"):
+        super().__init__(model, in_keys=[], out_keys=[out_key])
+        self.out_key = out_key
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        model = self.model
+        offset = next_tensordict.get(model.desired_goal_key) - next_tensordict.get(model.achieved_goal_key)
+        next_tensordict.set(self.out_key, offset)
+        return next_tensordict
+
+    forward = _call
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        goal = observation_spec[self.model.desired_goal_key]
+        observation_spec[self.out_key] = Unbounded(shape=goal.shape, dtype=goal.dtype, device=goal.device)
+        return observation_spec
+
+
+class PerceptionNoise(_ModelTransform):
+    """Gaussian noise on what the policy perceives of the joints and the scene (the Sim2Real proxy).
+
+    Rebuilds the flat ``out_key`` observation from the named state with noise added to
+    the keys of ``std`` (by default the configuration and the obstacle), freshly drawn
+    at every step. The named keys keep the true state, which the env steps from and the
+    planner reads. Place it where the model's observation :class:`~torchrl.envs.CatTensors`
+    is (it replaces that observation).
+
+    Args:
+        std: key -> standard deviation of its noise (radians for joints, metres for positions);
+            default ``{"joint_position": 0.01, "obstacle": 0.01}``.
+        model: the task model; read from the parent env's base env when not given.
+        out_key: the flat observation to rebuild.
+        generator: a ``torch.Generator`` for the noise; the global one by default.
+
+    Examples:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_silp import PerceptionNoise, UR5eReachEnv
+        >>> env = TransformedEnv(UR5eReachEnv(num_envs=4, seed=0), PerceptionNoise({"obstacle": 0.02}))
+        >>> check_env_specs(env, seed=0)
+        >>> td = env.reset()
+        >>> bool((td["observation"][:, 6:12] != td["obstacle"]).all())
+        True
+    """
+
+    def __init__(self, std: dict | None = None, model=None, out_key: str = "observation", generator=None):
+        std = {"joint_position": 0.01, "obstacle": 0.01} if std is None else dict(std)
+        for key, value in std.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"std[{key!r}] must be a finite number >= 0, got {value!r}")
+        super().__init__(model, in_keys=[], out_keys=[out_key])
+        self.std = std
+        self.out_key = out_key
+        self.generator = generator
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        model = self.model
+        unknown = set(self.std) - set(model.observation_keys)
+        if unknown:
+            raise ValueError(f"std: keys {sorted(unknown)} are not in the observation {model.observation_keys}")
+        parts = []
+        for key in model.observation_keys:
+            value = next_tensordict.get(key)
+            value = value.reshape(*next_tensordict.batch_size, -1)
+            if self.std.get(key, 0.0) > 0:
+                noise = torch.randn(value.shape, generator=self.generator, dtype=value.dtype, device=value.device)
+                value = value + self.std[key] * noise
+            parts.append(value)
+        next_tensordict.set(self.out_key, torch.cat(parts, dim=-1))
+        return next_tensordict
+
+    forward = _call
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._call(tensordict_reset)
