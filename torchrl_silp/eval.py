@@ -6,9 +6,12 @@ import time
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_silp.envs.reach import UR5eReachEnv
+from torchrl_silp.envs.reach import ReachEnv
+from torchrl_silp.models.base import as_model
+from torchrl_silp.transforms import CollisionHandling
 
 __all__ = ["evaluate", "episode_outcomes", "DEFAULT_TEST_SEED"]
 
@@ -36,32 +39,35 @@ def evaluate(
     n_tasks: int = 1000,
     seed: int = DEFAULT_TEST_SEED,
     *,
+    model=None,
+    env=None,
+    observation_transform=None,
     max_steps: int = 50,
     collision_type: int = 0,
-    workspace_exit: str = "collision",
-    task_branch: str = "front",
     device: torch.device | str | None = None,
-    env: UR5eReachEnv | None = None,
     return_rollout: bool = False,
 ) -> dict | tuple[dict, TensorDictBase]:
-    """Roll a policy out deterministically on ``n_tasks`` fixed test tasks.
+    """Roll a policy out deterministically on ``n_tasks`` fixed test tasks of a task model.
 
-    The tasks are those of ``UR5eReachEnv(num_envs=n_tasks, seed=seed)`` after
-    its first reset, so every method sees the same ones for the same seed. All
-    tasks run as one batch under ``ExplorationType.DETERMINISTIC``. With
-    ``collision_type=0`` (default) a collision ends the episode as a failure,
+    The tasks are those of ``ReachEnv(model, num_envs=n_tasks, seed=seed)`` after
+    its first reset, so every method sees the same ones for the same model and
+    seed. All tasks run as one batch under ``ExplorationType.DETERMINISTIC``.
+    With ``collision_type=0`` (default) a collision ends the episode as a failure,
     as it would on a real arm.
 
     Args:
         policy: a TensorDict module (or any callable ``td -> td`` writing ``"action"``).
         n_tasks: number of test tasks (paper: 1000).
         seed: seed of the test tasks.
-        max_steps: episode length (paper: 50).
+        model: the :class:`~torchrl_silp.models.TaskModel` of the task (or an env holding one).
+        env: an env to evaluate in instead of one built from ``model`` (its batch size is
+            the number of tasks; it must end episodes on collision for a collision to count
+            as the end of an episode).
+        observation_transform: builds the policy's inputs from the named state (the env's
+            observation transforms); the model's :class:`~torchrl.envs.CatTensors` by default.
+        max_steps: episode length (50 in our tables).
         collision_type: collision handling during the test (0, 1 or 2).
-        workspace_exit: ``"collision"`` or ``"block"`` (see :class:`~torchrl_silp.UR5eReachEnv`).
-        task_branch: ``"front"`` or ``"any"``: the IK branch of the tasks (see :class:`~torchrl_silp.UR5eReachEnv`).
         device: device of the test env; defaults to the policy's parameters' device.
-        env: an env to evaluate in instead (its batch size is the number of tasks).
         return_rollout: also return the rollout TensorDict ``[n_tasks, T]``.
 
     Returns:
@@ -73,20 +79,26 @@ def evaluate(
     Examples:
         >>> import torch
         >>> from torchrl_silp import evaluate
+        >>> from torchrl_silp.models import UR5eReach
         >>> def still(td):  # a policy that never moves
         ...     return td.set("action", torch.zeros(*td.batch_size, 3))
-        >>> evaluate(still, n_tasks=8)["success_rate"]
+        >>> evaluate(still, n_tasks=8, model=UR5eReach())["success_rate"]
         0.0
     """
     if isinstance(n_tasks, bool) or not isinstance(n_tasks, int) or n_tasks < 1:
         raise ValueError(f"n_tasks must be a positive int, got {n_tasks!r}")
+    if env is None and model is None:
+        raise ValueError("evaluate needs model (the task model) or env")
     if device is None:
         params = list(policy.parameters()) if hasattr(policy, "parameters") else []
         device = params[0].device if params else torch.device("cpu")
     if env is None:
-        env = UR5eReachEnv(
-            num_envs=n_tasks, seed=seed, max_steps=max_steps, collision_type=collision_type,
-            workspace_exit=workspace_exit, task_branch=task_branch, device=device,
+        model = as_model(model)
+        if observation_transform is None:
+            observation_transform = model.observation_transform()
+        env = TransformedEnv(
+            ReachEnv(model, num_envs=n_tasks, seed=seed, max_steps=max_steps, device=device),
+            Compose(CollisionHandling(collision_type), observation_transform),
         )
     n = env.batch_size.numel()
     with set_exploration_type(ExplorationType.DETERMINISTIC):

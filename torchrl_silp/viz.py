@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
-from torchrl_silp.envs.reach import UR5eReachEnv
+from torchrl_silp.models.ur5e import UR5eReach
 from torchrl_silp.robot import UR5e
 
 __all__ = ["draw_scene", "render_rgb", "save_rollout_png", "arm_polygons"]
@@ -247,8 +247,9 @@ def draw_scene(
         >>> from torchrl_silp import UR5eReachEnv
         >>> from torchrl_silp.viz import draw_scene
         >>> env = UR5eReachEnv(seed=0)
-        >>> obs = env.reset()["observation"]
-        >>> ax = draw_scene(env.robot, obs[:3], obs[6:12], obs[12:15], start_tcp=obs[3:6])
+        >>> td = env.reset()
+        >>> ax = draw_scene(env.model.robot, td["joint_position"], td["obstacle"], td["desired_goal"],
+        ...                 start_tcp=td["achieved_goal"])
         >>> ax.figure.savefig(io.BytesIO(), format="png")
     """
     robot = _check_robot(robot)
@@ -299,7 +300,7 @@ def draw_scene(
     )
     ax.add_collection3d(
         Line3DCollection(
-            _box_edges(UR5eReachEnv.WORKSPACE_LOW, UR5eReachEnv.WORKSPACE_HIGH),
+            _box_edges(UR5eReach.WORKSPACE_LOW, UR5eReach.WORKSPACE_HIGH),
             colors=[(0.4, 0.4, 0.4, 0.5)],
             linewidths=0.6,
             linestyles=":",
@@ -408,11 +409,12 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
     episode ended (success, collision count, or still running / truncated).
 
     Args:
-        env_or_robot: a :class:`~torchrl_silp.envs.reach.UR5eReachEnv`, a
-            :class:`~torchrl_silp.envs.gym.UR5eReachGymEnv` or any object with a
-            ``robot`` attribute, or a :class:`~torchrl_silp.robot.UR5e`.
+        env_or_robot: a :class:`~torchrl_silp.robot.UR5e`, or an env or model holding one
+            (``.robot`` or ``.model.robot``).
         rollout: TensorDict with batch ``[B, T]`` or ``[T]`` (more leading dims
-            are flattened) holding ``"observation"`` and ``("next", "observation")``;
+            are flattened) holding the named state (``"joint_position"``,
+            ``"achieved_goal"``, ``"obstacle"``, ``"desired_goal"``) at the root and the
+            configuration and achieved goal under ``"next"``;
             ``("next", "done")``, ``("next", "reward")``, ``("next", "success")``
             and ``("next", "collision")`` are used when present.
         path: where to write the PNG.
@@ -435,7 +437,10 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
     """
     from tensordict import TensorDictBase
 
-    robot = env_or_robot if isinstance(env_or_robot, UR5e) else getattr(env_or_robot, "robot", None)
+    robot = env_or_robot
+    for attr in ("model", "robot"):
+        if not isinstance(robot, UR5e) and hasattr(robot, attr):
+            robot = getattr(robot, attr)
     if not isinstance(robot, UR5e):
         raise TypeError(
             "env_or_robot must be a torchrl_silp.UR5e or an env with a UR5e `robot` attribute, "
@@ -449,19 +454,24 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
     dpi = _positive_int(dpi, "dpi", 10)
     if rollout.batch_dims < 1 or rollout.batch_size.numel() == 0:
         raise ValueError(f"rollout must have batch [B, T] or [T] with T >= 1, got {tuple(rollout.batch_size)}")
-    missing = [k for k in ("observation", ("next", "observation")) if k not in rollout.keys(True)]
+    needed = ("joint_position", "achieved_goal", "obstacle", "desired_goal", ("next", "joint_position"),
+              ("next", "achieved_goal"))
+    missing = [k for k in needed if k not in rollout.keys(True)]
     if missing:
         raise ValueError(f"rollout is missing the keys {missing}")
     td = rollout.reshape(-1, rollout.batch_size[-1])
-    obs = td["observation"].detach().to("cpu", torch.float64).numpy()
-    nxt = td["next", "observation"].detach().to("cpu", torch.float64).numpy()
-    if obs.shape[-1] != 15 or nxt.shape[-1] != 15:
-        raise ValueError(f"rollout observations must have 15 entries (reach task), got {obs.shape[-1]}")
+
+    def array(key):
+        return td[key].detach().to("cpu", torch.float64).numpy()
+
+    start_tcp, obstacle, goal = array("achieved_goal"), array("obstacle"), array("desired_goal")
+    next_q, next_tcp = array(("next", "joint_position")), array(("next", "achieved_goal"))
+    shape = start_tcp.shape[:2]
 
     def optional(key, fill):
         if ("next", key) in td.keys(True):
-            return td["next", key].detach().to("cpu").numpy().reshape(obs.shape[:2])
-        return np.full(obs.shape[:2], fill)
+            return td["next", key].detach().to("cpu").numpy().reshape(shape)
+        return np.full(shape, fill)
 
     done = optional("done", False).astype(bool)
     reward = optional("reward", np.nan).astype(np.float64)
@@ -478,7 +488,7 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
     for i, (b, first, last) in enumerate(episodes):
         ax = fig.add_subplot(nrows, ncols, i + 1, projection="3d")
         steps = slice(first, last + 1)
-        path_xyz = np.concatenate([obs[b, first, None, 3:6], nxt[b, steps, 3:6]])
+        path_xyz = np.concatenate([start_tcp[b, first, None], next_tcp[b, steps]])
         if success[b, last]:
             end = "success"
         elif terminated[b, last] and collision[b, last]:
@@ -493,10 +503,10 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
             title += f", {n_coll} collision{'s' if n_coll > 1 else ''}"
         draw_scene(
             robot,
-            nxt[b, last, :3],
-            obs[b, first, 6:12],
-            obs[b, first, 12:15],
-            start_tcp=obs[b, first, 3:6],
+            next_q[b, last],
+            obstacle[b, first],
+            goal[b, first],
+            start_tcp=start_tcp[b, first],
             trajectory=path_xyz,
             ax=ax,
             title=title,

@@ -11,12 +11,13 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
+from torchrl_silp.models.base import as_model
 from torchrl_silp.planning import plan_demonstrations
 
-__all__ = ["DemoReplayBuffer", "MixedReplay", "TRANSITION_KEYS"]
+__all__ = ["DemoReplayBuffer", "MixedReplay", "TRANSITION_KEYS", "transition_keys"]
 
-# What a transition needs for off-policy learning with SILP+: the keys both
-# buffers store, so that one sampled batch concatenates demos and interaction.
+# What a transition needs for off-policy learning: the keys both buffers
+# store, so that one sampled batch concatenates demos and interaction.
 TRANSITION_KEYS: tuple[NestedKey, ...] = (
     "observation",
     "action",
@@ -27,6 +28,26 @@ TRANSITION_KEYS: tuple[NestedKey, ...] = (
     ("next", "terminated"),
     ("next", "truncated"),
 )
+
+
+def transition_keys(model, observation_keys: Sequence[NestedKey] = ("observation",)) -> tuple[NestedKey, ...]:
+    """The keys a SILP+ transition keeps: :data:`TRANSITION_KEYS`, the networks' further inputs
+    ``observation_keys``, and the model's named state at the root and under ``"next"`` (which the
+    reward filter's model look-ahead and hindsight relabelling read).
+
+    Examples:
+        >>> from torchrl_silp.models import UR5eReach
+        >>> keys = transition_keys(UR5eReach(), ("observation", "goal_offset"))
+        >>> ("next", "achieved_goal") in keys, "goal_offset" in keys
+        (True, True)
+    """
+    model = as_model(model)
+    keys = list(TRANSITION_KEYS)
+    for key in (*observation_keys, *model.state_keys):
+        for k in (key, ("next", key) if isinstance(key, str) else ("next", *key)):
+            if k not in keys:
+                keys.append(k)
+    return tuple(keys)
 
 
 def _storage_device(device):
@@ -49,14 +70,19 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
     :meth:`dumps` / :meth:`loads` through the storage checkpointers.
 
     Args:
-        env: the :class:`~torchrl_silp.envs.UR5eReachEnv` whose model (edge check,
-            transition, reward) the planner uses.
+        model: the :class:`~torchrl_silp.models.TaskModel` the planner uses (or an env holding one).
         capacity: number of demo transitions kept (FIFO); ignored when ``storage`` is given.
         storage: a TorchRL storage; ``LazyTensorStorage(capacity, device=device)`` by default.
         device: device of the default storage.
-        keys: keys stored for each demo transition (``None`` keeps all the planner returns).
+        keys: keys stored for each demo transition; :func:`transition_keys` of the model and
+            the observation keys by default, ``None`` keeps all the planner returns.
+        observation_transform: builds the networks' inputs (``"observation"``, ...) from a named
+            state, as the env's transforms do; the model's :class:`~torchrl.envs.CatTensors`
+            by default. Give the env's observation transforms here (e.g. with an
+            :class:`~torchrl.envs.ObservationNorm`) so demos and interaction data match.
+        observation_keys: what ``observation_transform`` writes (stored with the named keys).
         planner_kwargs: forwarded to :func:`plan_demonstrations` (``d``, ``n_pairs``,
-            ``step_size``, ``method``, ...).
+            ``step_size``, ``method``, ``goal_node``, ...).
         **kwargs: forwarded to :class:`~torchrl.data.TensorDictReplayBuffer`
             (``batch_size``, ``sampler``, ``transform``, ...).
 
@@ -70,7 +96,7 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
         >>> from torchrl_silp.data import DemoReplayBuffer
         >>> env = UR5eReachEnv(num_envs=4, seed=0)
         >>> episodes = env.rollout(50, break_when_any_done=False)
-        >>> demos = DemoReplayBuffer(env, capacity=10_000, batch_size=32)
+        >>> demos = DemoReplayBuffer(env.model, capacity=10_000, batch_size=32)
         >>> _ = demos.extend(episodes)
         >>> len(demos) > 0
         True
@@ -80,25 +106,34 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
 
     def __init__(
         self,
-        env,
+        model,
         *,
         capacity: int = 100_000,
         storage=None,
         device: torch.device | str | None = None,
-        keys: Sequence[NestedKey] | None = TRANSITION_KEYS,
+        keys: Sequence[NestedKey] | None | str = "default",
+        observation_transform=None,
+        observation_keys: Sequence[NestedKey] = ("observation",),
         planner_kwargs: dict | None = None,
         **kwargs,
     ):
-        if not all(hasattr(env, name) for name in ("transition", "reward", "edge_collision_free")):
-            raise TypeError("env must provide transition, reward and edge_collision_free (a UR5eReachEnv)")
+        model = as_model(model)
         if storage is None:
             if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
                 raise ValueError(f"capacity must be a positive int, got {capacity!r}")
             storage = LazyTensorStorage(capacity, device=_storage_device(device))
+        planner_kwargs = dict(planner_kwargs or {})
+        if "observation_transform" in planner_kwargs:
+            raise ValueError("pass observation_transform to DemoReplayBuffer, not in planner_kwargs")
         super().__init__(storage=storage, **kwargs)
-        self.env = env
+        self.model = model
+        self.observation_transform = observation_transform
+        if isinstance(keys, str):
+            if keys != "default":
+                raise ValueError(f"keys must be a sequence of keys, None or 'default', got {keys!r}")
+            keys = transition_keys(model, observation_keys)
         self.keys = None if keys is None else tuple(keys)
-        self.planner_kwargs = dict(planner_kwargs or {})
+        self.planner_kwargs = planner_kwargs
         self.planning_time = 0.0
         self.episodes_planned = 0
         self.demos_added = 0
@@ -109,7 +144,9 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
         Episodes that yield no demonstration (no path found) add nothing.
         """
         start = time.perf_counter()
-        demos = plan_demonstrations(self.env, episodes, **self.planner_kwargs)
+        demos = plan_demonstrations(
+            self.model, episodes, observation_transform=self.observation_transform, **self.planner_kwargs
+        )
         self.planning_time += time.perf_counter() - start
         self.episodes_planned += _count_episodes(episodes)
         return self.add_demonstrations(demos, *args, **kwargs)
@@ -193,7 +230,8 @@ class MixedReplay:
             demo buffer's share of all stored transitions, i.e. sampling as if both
             lived in one ordinary replay buffer (the paper's *-Demon baselines).
         batch_size: default ``sample`` size.
-        keys: keys kept in both parts (must be present in both).
+        keys: keys kept in both parts (must be present in both); by default the demo buffer's
+            ``keys`` when it has them, else :data:`TRANSITION_KEYS`.
         device: where sampled batches are returned (default: where they are stored).
 
     Examples:
@@ -201,7 +239,7 @@ class MixedReplay:
         >>> from torchrl_silp.data import DemoReplayBuffer, MixedReplay
         >>> env = UR5eReachEnv(num_envs=4, seed=0)
         >>> episodes = env.rollout(50, break_when_any_done=False)
-        >>> mixed = MixedReplay(DemoReplayBuffer(env), demo_fraction=0.25, batch_size=64)
+        >>> mixed = MixedReplay(DemoReplayBuffer(env.model), demo_fraction=0.25, batch_size=64)
         >>> _ = mixed.extend(episodes)
         >>> mixed.sample()["is_demo"].sum().item()  # no demos planned yet
         0
@@ -218,9 +256,11 @@ class MixedReplay:
         interaction_capacity: int = 1_000_000,
         demo_fraction: float = 0.25,
         batch_size: int | None = None,
-        keys: Sequence[NestedKey] = TRANSITION_KEYS,
+        keys: Sequence[NestedKey] | None = None,
         device: torch.device | str | None = None,
     ):
+        if keys is None:
+            keys = getattr(demo_buffer, "keys", None) or TRANSITION_KEYS
         if demo_fraction != "proportional" and (
             isinstance(demo_fraction, bool) or not isinstance(demo_fraction, (int, float)) or not 0.0 <= demo_fraction <= 1.0
         ):

@@ -1,9 +1,9 @@
-"""Environments: the batched TorchRL reach env and its Gymnasium twin.
+"""Environments: the batched TorchRL reach envs over task models and their Gymnasium twins.
 
 Importing this package registers the Gymnasium id ``torchrl_silp/UR5eReach-v0``.
 """
 
-from torchrl_silp.envs.reach import COLLISION_TYPES, UR5eReachEnv
+from torchrl_silp.envs.reach import COLLISION_TYPES, ReachEnv, UR5eReachEnv
 from torchrl_silp.envs.gym import ENV_ID, UR5eReachGymEnv  # importing registers the Gymnasium id
 
-__all__ = ["UR5eReachEnv", "COLLISION_TYPES", "UR5eReachGymEnv", "ENV_ID"]
+__all__ = ["ReachEnv", "UR5eReachEnv", "COLLISION_TYPES", "UR5eReachGymEnv", "ENV_ID"]

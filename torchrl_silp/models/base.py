@@ -27,7 +27,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Composite, Unbounded
 from torchrl.envs import CatTensors
 
-__all__ = ["TaskModel", "CONFIG_KEY", "ACHIEVED_GOAL_KEY", "DESIRED_GOAL_KEY", "GOAL_CONFIG_KEY"]
+__all__ = ["TaskModel", "as_model", "CONFIG_KEY", "ACHIEVED_GOAL_KEY", "DESIRED_GOAL_KEY", "GOAL_CONFIG_KEY"]
 
 CONFIG_KEY = "joint_position"
 ACHIEVED_GOAL_KEY = "achieved_goal"
@@ -45,6 +45,18 @@ def _check_tensor(name: str, value, last_dim: int | None = None) -> None:
         raise TypeError(f"{name} must be a floating tensor, got {value.dtype}")
     if last_dim is not None and value.shape[-1:] != (last_dim,):
         raise ValueError(f"{name} must have shape (..., {last_dim}), got {tuple(value.shape)}")
+
+
+def as_model(obj, name: str = "model") -> "TaskModel":
+    """``obj`` if it is a :class:`TaskModel`, else the model an env holds (``env.model``); TypeError otherwise."""
+    if isinstance(obj, TaskModel):
+        return obj
+    held = getattr(obj, "model", None)
+    if isinstance(held, TaskModel):
+        return held
+    raise TypeError(
+        f"{name} must be a torchrl_silp.models.TaskModel (or an env holding one as .model), got {type(obj).__name__}"
+    )
 
 
 class TaskModel(ABC):

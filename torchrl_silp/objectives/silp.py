@@ -12,6 +12,8 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
+from torchrl_silp.models.base import as_model
+
 __all__ = ["SILPLoss", "BC_FILTERS"]
 
 BC_FILTERS = ("reward", "q", "none")
@@ -46,12 +48,13 @@ class SILPLoss(LossModule):
       .. math::
           R(s_0, a_0) = r_0 + \gamma f_r(s_1, \pi(s_1)) + \dots + \gamma^k f_r(s_k, \pi(s_k))
 
-      with ``f_r(s_j, π(s_j)) = env.reward(s_j, env.transition(s_j, π(s_j)))``
-      and ``s_{j+1} = env.transition(s_j, π(s_j))``. For the demonstration,
-      ``r_0`` and ``s_1`` are the stored ``("next", "reward")`` and
-      ``("next", "observation")``; for the policy, ``r_0 = f_r(s_0, π(s_0))``
-      and ``s_1 = f_s(s_0, π(s_0))``. As in eq. 7 the look-ahead does not stop
-      at terminal states, and both branches are treated alike. Needs ``env``.
+      with ``f_s`` and ``f_r`` the task model's :meth:`~torchrl_silp.models.TaskModel.step`
+      (transition and reward in one pass). For the demonstration, ``r_0`` and
+      ``s_1`` are the stored ``("next", "reward")`` and next named state; for the
+      policy, ``r_0 = f_r(s_0, π(s_0))`` and ``s_1 = f_s(s_0, π(s_0))``. The states
+      are the model's named keys; the actor's inputs at ``s_j`` are built from them
+      by ``observation_transform``. As in eq. 7 the look-ahead does not stop
+      at terminal states, and both branches are treated alike. Needs ``model``.
     * ``"q"``: the Q-filter of SILP / Nair et al. 2018:
       ``Q(s, a_demo) > Q(s, π(s))`` with the wrapped loss's current critic
       (the minimum over the Q ensemble when there is one: SAC, TD3).
@@ -72,11 +75,10 @@ class SILPLoss(LossModule):
         loss_module: the actor-critic loss to wrap; it must have an
             ``actor_network`` (and a ``qvalue_network`` or ``value_network``
             for ``filter="q"``) and a ``"mean"`` or ``"sum"`` reduction.
-        env: the model of the task for ``filter="reward"``: anything with
-            ``transition(obs, action) -> next_obs`` and
-            ``reward(obs, next_obs) -> (..., 1)``, such as
-            :class:`~torchrl_silp.UR5eReachEnv`. Kept as a plain reference, not
-            a sub-module (moving or saving the loss leaves it alone).
+        model: the :class:`~torchrl_silp.models.TaskModel` of the task, for
+            ``filter="reward"`` (an env holding one as ``.model`` works too). A
+            plain reference: the model is no ``nn.Module``, so moving or saving the
+            loss leaves it alone.
 
     Keyword Args:
         filter: ``"reward"``, ``"q"`` or ``"none"``.
@@ -86,6 +88,9 @@ class SILPLoss(LossModule):
         gamma: discount of the reward filter in ``[0, 1]``; ``None`` reads the
             wrapped loss's value estimator's ``gamma`` at each call (0.99 when
             it has none).
+        observation_transform: builds the actor's inputs (``"observation"``, ...) from a
+            named state during the look-ahead, as the env's transforms do; the model's
+            :class:`~torchrl.envs.CatTensors` by default.
 
     Examples:
         >>> import torch
@@ -104,7 +109,7 @@ class SILPLoss(LossModule):
         ...     def forward(self, obs, act):
         ...         return self.net(torch.cat([obs, act], -1))
         >>> critic = ValueOperator(Critic(), in_keys=["observation", "action"])
-        >>> loss = SILPLoss(DDPGLoss(actor, critic), env, filter="reward", lambda2=2.0)
+        >>> loss = SILPLoss(DDPGLoss(actor, critic), env.model, filter="reward", lambda2=2.0)
         >>> updater = SoftUpdate(loss.rl_loss, tau=0.005)
         >>> data = env.rollout(4).reshape(-1)
         >>> data["is_demo"] = torch.zeros(32, 1, dtype=torch.bool)
@@ -127,8 +132,6 @@ class SILPLoss(LossModule):
                 without it has no demonstration. Defaults to ``"is_demo"``.
             action: the stored (demonstrated) action; also forwarded to the
                 wrapped loss. Defaults to ``"action"``.
-            observation: the observation given to ``env.transition``; the next
-                one is read at ``("next", observation)``. Defaults to ``"observation"``.
             reward: the stored reward, read at ``("next", reward)``; also
                 forwarded to the wrapped loss. Defaults to ``"reward"``.
             state_action_value: the critic's output key for the Q-filter; also
@@ -137,7 +140,6 @@ class SILPLoss(LossModule):
 
         is_demo: NestedKey = "is_demo"
         action: NestedKey = "action"
-        observation: NestedKey = "observation"
         reward: NestedKey = "reward"
         state_action_value: NestedKey = "state_action_value"
 
@@ -148,13 +150,14 @@ class SILPLoss(LossModule):
     def __init__(
         self,
         loss_module: LossModule,
-        env=None,
+        model=None,
         *,
         filter: str = "reward",
         lambda1: float = 1.0,
         lambda2: float = 1.0,
         k: int = 1,
         gamma: float | None = None,
+        observation_transform=None,
     ):
         if not isinstance(loss_module, LossModule):
             raise TypeError(f"loss_module must be a torchrl LossModule, got {type(loss_module).__name__}")
@@ -179,26 +182,20 @@ class SILPLoss(LossModule):
             isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0
         ):
             raise ValueError(f"gamma must be None or a number in [0, 1], got {gamma!r}")
-        if filter == "reward":
-            if env is None:
-                raise ValueError(
-                    "filter='reward' needs env: a model with transition(obs, action) and reward(obs, next_obs), "
-                    "e.g. a UR5eReachEnv"
-                )
-            if not (callable(getattr(env, "transition", None)) and callable(getattr(env, "reward", None))):
-                raise ValueError(
-                    "env must have callable transition(obs, action) and reward(obs, next_obs), "
-                    f"got {type(env).__name__}"
-                )
+        if filter == "reward" and model is None:
+            raise ValueError("filter='reward' needs model: the task model (a torchrl_silp.models.TaskModel)")
+        if model is not None:
+            model = as_model(model)
         if filter == "q" and self._critic_name(loss_module) is None:
             raise ValueError(
                 f"filter='q' needs a loss with a qvalue_network or value_network, got {type(loss_module).__name__}"
             )
         super().__init__()
         self.rl_loss = loss_module
-        # a plain reference: an EnvBase is an nn.Module, and registering it
-        # would put the env's buffers in the loss's state_dict and .to()
-        self.__dict__["env"] = env
+        self.model = model
+        if observation_transform is None and model is not None:
+            observation_transform = model.observation_transform()
+        self.observation_transform = observation_transform
         self.filter = filter
         self.k = k
         self._gamma = None if gamma is None else float(gamma)
@@ -247,7 +244,8 @@ class SILPLoss(LossModule):
             keys = self.tensor_keys
             own = [keys.is_demo, keys.action, *self.rl_loss.actor_network.in_keys]
             if self.filter == "reward":
-                own += [keys.observation, ("next", keys.observation), ("next", keys.reward)]
+                state = list(self.model.state_keys)
+                own += [*state, *[("next", key) for key in state], ("next", keys.reward)]
             if self.filter == "q":
                 own += list(getattr(self.rl_loss, self._critic_name(self.rl_loss)).in_keys)
             merged = {unravel_key(key) for key in (*self.rl_loss.in_keys, *own)}
@@ -314,55 +312,42 @@ class SILPLoss(LossModule):
             td_out = actor(td_in)
         return td_out.get(self._actor_action_key)
 
-    def _model_step(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        # one fused model pass where the env offers it (UR5eReachEnv.transition_reward)
-        env = self.env
-        fused = getattr(env, "transition_reward", None)
-        if callable(fused):
-            return fused(obs, action)
-        nxt = env.transition(obs, action)
-        return nxt, env.reward(obs, nxt)
+    def _actor_inputs(self, state: TensorDictBase) -> TensorDictBase:
+        return self.observation_transform(state.clone(False))
 
     def lookahead_returns(
         self, tensordict: TensorDictBase, policy_action: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The k-step model returns of eq. 7 for every row: ``(R(s, a), R(s, π(s)))``.
 
-        ``R(s, a)`` starts from the stored ``("next", reward)`` and
-        ``("next", observation)``; ``R(s, π(s))`` from ``env.reward`` and
-        ``env.transition`` of the actor's deterministic action. Computed without
-        gradient; both shaped like ``tensordict``'s batch.
+        ``R(s, a)`` starts from the stored ``("next", reward)`` and next state;
+        ``R(s, π(s))`` from the model's step of the actor's deterministic action.
+        Computed without gradient; both shaped like ``tensordict``'s batch.
 
         Args:
             tensordict: a batch with the keys of :attr:`in_keys`.
             policy_action: ``π(s)`` if already computed; computed otherwise.
         """
-        if self.env is None:
-            raise ValueError("lookahead_returns needs the env passed to SILPLoss")
-        keys, shape = self.tensor_keys, tensordict.shape
+        if self.model is None:
+            raise ValueError("lookahead_returns needs the model passed to SILPLoss")
+        model, keys, shape = self.model, self.tensor_keys, tensordict.shape
         td = tensordict.reshape(-1)
         n = td.shape[0]
-        obs_key = keys.observation
         with torch.no_grad():
             pi = self._policy_action(td) if policy_action is None else policy_action.detach().reshape(n, -1)
-            s0 = td.get(obs_key)
+            s0 = td.select(*model.state_keys)
             r0_demo = td.get(("next", keys.reward)).reshape(n)
-            s1_demo = td.get(("next", obs_key))
-            s1_pi, r0_pi = self._model_step(s0, pi)
-            r0_pi = r0_pi.reshape(n)
+            s1_demo = td.get("next").select(*model.state_keys)
+            s1_pi, r0_pi = model.step(s0, pi)[:2]
             # both branches advance together as one batch of 2N rows
             state = torch.cat([s1_demo, s1_pi.to(s1_demo.dtype)])
-            ret = torch.cat([r0_demo, r0_pi.to(r0_demo.dtype)])
-            actor_td = td.select(*self.rl_loss.actor_network.in_keys, strict=False)
-            actor_td = torch.cat([actor_td, actor_td])
+            ret = torch.cat([r0_demo, r0_pi.reshape(n).to(r0_demo.dtype)])
             gamma, discount = self.gamma, 1.0
             for _ in range(self.k):  # over the horizon, not the batch
                 discount = discount * gamma
-                actor_td.set(obs_key, state)
-                action = self._policy_action(actor_td)
-                nxt, reward = self._model_step(state, action)
+                action = self._policy_action(self._actor_inputs(state))
+                state, reward = model.step(state, action)[:2]
                 ret = ret + discount * reward.reshape(2 * n).to(ret.dtype)
-                state = nxt.to(state.dtype)
         ret_demo, ret_pi = ret.split(n)
         return ret_demo.reshape(shape), ret_pi.reshape(shape)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_silp.models.base import as_model
 from torchrl_silp.planning.roadmap import ExperienceRoadmap
 from torchrl_silp.planning.search import SEARCH_METHODS, Paths, roadmap_paths
 
@@ -24,26 +25,38 @@ def _split_counts(m: torch.Tensor) -> torch.Tensor:
         P = torch.where(over, P * 2, P)
 
 
-def paths_to_demonstrations(env, roadmap: ExperienceRoadmap, episode: torch.Tensor, paths: Paths) -> TensorDict:
+def _default_observation(model, observation_transform):
+    return model.observation_transform() if observation_transform is None else observation_transform
+
+
+def paths_to_demonstrations(
+    model, roadmap: ExperienceRoadmap, episode: torch.Tensor, paths: Paths, observation_transform=None
+) -> TensorDict:
     """Flat MDP transitions along found paths, with InsertNodes.
 
     For each found path ``s_0 ... s_n`` each edge ``s_i -> s_{i+1}`` gives the
-    action ``a = (q_{i+1} - q_i) / ACTION_SCALE``; an edge whose action
+    action ``a = (q_{i+1} - q_i) / action_scale``; an edge whose action
     leaves ``[-1, 1]`` is halved (intermediate configurations on the
     segment, which the roadmap's edge check covered) until every action is
-    within bounds. The observations' goal is the TCP of the path's goal node,
-    next observations come from ``env.transition`` and rewards, collision
-    and success flags from ``env.outcome``. A demonstration ends at its first
-    successful step (the env would terminate there): ``terminated = done =
-    success`` on that step. Demonstrations with a colliding step (only
-    possible when the episode's states were not the env's own, e.g. noisy
-    observations) are dropped whole.
+    within bounds. The demonstrations' desired goal is the achieved goal of
+    the path's goal node; next states, rewards, collision and success flags
+    come from ``model.step`` (the env's own step, swept collision check
+    included). A demonstration ends at its first successful step (the env
+    would terminate there): ``terminated = done = success`` on that step.
+    Demonstrations with a colliding step are dropped whole.
+
+    The transitions hold the model's named state keys at the root and under
+    ``"next"``; ``observation_transform`` (a TorchRL transform or any callable
+    ``td -> td``; the model's :class:`~torchrl.envs.CatTensors` by default)
+    then writes what the networks read (``"observation"``, ...), on both, the
+    way the env's transforms do for interaction data.
 
     Args:
-        env: the :class:`~torchrl_silp.envs.reach.UR5eReachEnv`.
+        model: the :class:`~torchrl_silp.models.TaskModel` (or an env holding one).
         roadmap: the roadmap the paths were found on.
         episode: long ``[Q]`` the episode of each query.
         paths: :class:`~torchrl_silp.planning.search.Paths` ``[Q]``.
+        observation_transform: builds the networks' inputs from a named state.
 
     Returns:
         TensorDict ``[N]`` with the keys of an env rollout plus ``"is_demo"``,
@@ -54,14 +67,16 @@ def paths_to_demonstrations(env, roadmap: ExperienceRoadmap, episode: torch.Tens
         >>> from torchrl_silp import UR5eReachEnv
         >>> from torchrl_silp.planning import ExperienceRoadmap, roadmap_paths
         >>> env = UR5eReachEnv(num_envs=2, seed=0)
-        >>> roadmap = ExperienceRoadmap(env, env.rollout(20, break_when_any_done=False))
+        >>> roadmap = ExperienceRoadmap(env.model, env.rollout(20, break_when_any_done=False))
         >>> ep, s, g = roadmap.queries(4, torch.Generator().manual_seed(0))
-        >>> demos = paths_to_demonstrations(env, roadmap, ep, roadmap_paths(roadmap, ep, s, g))
+        >>> demos = paths_to_demonstrations(env.model, roadmap, ep, roadmap_paths(roadmap, ep, s, g))
         >>> bool((demos["action"].abs() <= 1).all())
         True
     """
-    device, dtype = roadmap.device, env.dtype
-    q_all, scale = roadmap.q.to(dtype), env.ACTION_SCALE
+    model = as_model(model)
+    build = _default_observation(model, observation_transform)
+    device, dtype = roadmap.device, model.dtype
+    q_all, scale = roadmap.config.to(dtype), model.action_scale
     ok = paths.found & (paths.length >= 2)
     nodes, length, episode = paths.nodes[ok], paths.length[ok], episode[ok]
     D = nodes.shape[0]
@@ -84,11 +99,10 @@ def paths_to_demonstrations(env, roadmap: ExperienceRoadmap, episode: torch.Tens
     act = action[edge] / Pf
     e_t, demo_t = e[edge], demo[edge]
     goal_node = nodes[:, -1]
-    goal_tcp = roadmap.tcp.to(dtype)[episode, goal_node][demo_t]
+    goal = roadmap.achieved_goal.to(dtype)[episode, goal_node][demo_t]
     goal_q = q_all[episode, goal_node][demo_t]
-    obs = torch.cat([q, env.robot.fk(q), roadmap.obstacle.to(dtype)[e_t], goal_tcp], dim=-1)
-    next_obs = env.transition(obs, act)
-    reward, collision, success, flags = env.outcome(obs, next_obs)
+    state = model.state_at(q, roadmap.scene[e_t], goal)
+    next_state, reward, collision, success, flags = model.step(state, act)
 
     # cut each demo after its first success: later steps are past the env's termination
     succ = success.squeeze(-1).long()
@@ -104,48 +118,53 @@ def paths_to_demonstrations(env, roadmap: ExperienceRoadmap, episode: torch.Tens
     N = idx.numel()
     false = torch.zeros(N, 1, dtype=torch.bool, device=device)
     success = success[idx]
-    nxt = {
-        "observation": next_obs[idx],
-        "goal_q": goal_q[idx],
-        "reward": reward[idx],
-        "collision": collision[idx],
-        "success": success,
-        "discard": false.clone(),
-        "collision_reason": flags[idx],
-        "done": success.clone(),
-        "terminated": success.clone(),
-        "truncated": false.clone(),
-    }
-    root = {
-        "observation": obs[idx],
-        "action": act[idx],
-        "goal_q": goal_q[idx],
-        # flags of the state a step starts from: a demo state is never terminal or colliding
-        "collision": false.clone(),
-        "success": false.clone(),
-        "discard": false.clone(),
-        "collision_reason": torch.zeros(N, 1, dtype=flags.dtype, device=device),
-        "done": false.clone(),
-        "terminated": false.clone(),
-        "truncated": false.clone(),
-        "is_demo": torch.ones(N, 1, dtype=torch.bool, device=device),
-        "next": TensorDict(nxt, batch_size=[N], device=device),
-    }
-    return TensorDict(root, batch_size=[N], device=device)
+    nxt = next_state[idx]
+    nxt.update(
+        {
+            model.goal_config_key: goal_q[idx],
+            "reward": reward[idx],
+            "collision": collision[idx],
+            "success": success,
+            "discard": false.clone(),
+            "collision_reason": flags[idx],
+            "done": success.clone(),
+            "terminated": success.clone(),
+            "truncated": false.clone(),
+        }
+    )
+    root = state[idx]
+    root.update(
+        {
+            "action": act[idx],
+            model.goal_config_key: goal_q[idx],
+            # flags of the state a step starts from: a demo state is never terminal or colliding
+            "collision": false.clone(),
+            "success": false.clone(),
+            "discard": false.clone(),
+            "collision_reason": torch.zeros(N, 1, dtype=flags.dtype, device=device),
+            "done": false.clone(),
+            "terminated": false.clone(),
+            "truncated": false.clone(),
+            "is_demo": torch.ones(N, 1, dtype=torch.bool, device=device),
+        }
+    )
+    root = build(root)
+    root.set("next", build(nxt))
+    return root
 
 
 def plan_demonstrations(
-    env,
+    model,
     episodes: TensorDictBase,
     *,
     d: float = 0.15,
     n_pairs: int = 10,
-    step_size: float = 0.02,
+    step_size: float | None = None,
     method: str = "exact",
     generator: torch.Generator | None = None,
     lazy: bool = True,
-    certify: bool = False,
     goal_node: bool = False,
+    observation_transform=None,
 ) -> TensorDict:
     """Demonstrations planned on the experience of a batch of episodes (SILP+).
 
@@ -158,20 +177,21 @@ def plan_demonstrations(
     goal node.
 
     Args:
-        env: the :class:`~torchrl_silp.envs.reach.UR5eReachEnv` the episodes come from.
-        episodes: rollout TensorDict ``[..., T]`` (a ``[B, T]`` rollout or collector batch).
-        d: largest TCP distance of a roadmap edge (m); the paper's 0.15.
+        model: the :class:`~torchrl_silp.models.TaskModel` of the episodes' task (or an env holding one).
+        episodes: rollout TensorDict ``[..., T]`` (a ``[B, T]`` rollout or collector batch)
+            with the model's named state keys.
+        d: largest achieved-goal distance of a roadmap edge (m); the paper's 0.15.
         n_pairs: random start/goal pairs per episode (>= 0).
-        step_size: subdivision step of the edge collision check (rad).
+        step_size: resolution of the edge check (rad); the model's ``motion_resolution`` by default.
         method: ``"exact"`` (shortest paths) or ``"greedy"`` (the paper's walk).
         generator: torch generator of the start/goal draw.
         lazy: check only the edges the search needs (Lazy PRM, same paths as
             checking every candidate edge first; see
             :func:`~torchrl_silp.planning.search.roadmap_paths`).
-        certify: prove every edge free point by point instead of the paper's
-            subdivision check (see :mod:`torchrl_silp.planning.edges`).
         goal_node: also plan to each episode's real goal configuration (see
             :class:`~torchrl_silp.planning.roadmap.ExperienceRoadmap`).
+        observation_transform: builds the networks' inputs from a named state (see
+            :func:`paths_to_demonstrations`).
 
     Returns:
         TensorDict ``[N]`` of transitions with the keys and dtypes of an env
@@ -185,7 +205,7 @@ def plan_demonstrations(
         >>> from torchrl_silp import UR5eReachEnv
         >>> env = UR5eReachEnv(num_envs=4, seed=0)
         >>> episodes = env.rollout(50, break_when_any_done=False)
-        >>> demos = plan_demonstrations(env, episodes, generator=torch.Generator().manual_seed(0))
+        >>> demos = plan_demonstrations(env.model, episodes, generator=torch.Generator().manual_seed(0))
         >>> bool(demos["is_demo"].all()), bool((demos["action"].abs() <= 1).all())
         (True, True)
         >>> int(demos["next", "done"].sum()) == int(demos["next", "success"].sum())
@@ -195,9 +215,8 @@ def plan_demonstrations(
         raise ValueError(f"method must be one of {SEARCH_METHODS}, got {method!r}")
     if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
         raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
-    roadmap = ExperienceRoadmap(
-        env, episodes, d=d, step_size=step_size, lazy=lazy, certify=certify, goal_node=goal_node
-    )
+    model = as_model(model)
+    roadmap = ExperienceRoadmap(model, episodes, d=d, step_size=step_size, lazy=lazy, goal_node=goal_node)
     episode, start, goal = roadmap.queries(n_pairs, generator)
     paths = roadmap_paths(roadmap, episode, start, goal, method=method)
-    return paths_to_demonstrations(env, roadmap, episode, paths)
+    return paths_to_demonstrations(model, roadmap, episode, paths, observation_transform)

@@ -15,7 +15,8 @@ import math
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_silp.planning.edges import _check_positive, clearance_radius, segment_collision_free
+from torchrl_silp.models.base import as_model
+from torchrl_silp.planning.edges import _check_positive
 
 __all__ = ["ExperienceRoadmap", "split_episodes"]
 
@@ -71,13 +72,15 @@ class ExperienceRoadmap:
     ``("next", "collision")`` flag is False, in visiting order, exact repeats
     dropped (a type-1/2 collision puts the arm back on the previous state).
     Node 0 of every episode is its first state. Candidate edges join two
-    nodes of one episode whose TCPs are at most ``d`` apart; an edge is kept
-    when its joint segment passes
-    :func:`~torchrl_silp.planning.edges.segment_collision_free`: the paper's
-    subdivision check at ``step_size`` (the default; the predicate of
-    ``env.edge_collision_free`` on that edge alone), or, with
-    ``certify=True``, a proof that every point of the segment is free. Edges are undirected and
-    weighted by the TCP distance.
+    nodes of one episode whose achieved goals (e.g. TCPs) are at most ``d``
+    apart; an edge is kept when its joint segment passes the task model's
+    motion check (:meth:`~torchrl_silp.models.TaskModel.segment_collision_free`,
+    the test the env judges its steps with). Edges are undirected and
+    weighted by the achieved-goal distance.
+
+    The roadmap reads the model's named keys (configuration, achieved goal,
+    scene, desired goal), never the flat observation, so transforms that
+    rescale ``"observation"`` leave it unchanged.
 
     Episodes are split with ``("collector", "traj_ids")`` when present and with
     the done flags (see :func:`split_episodes`), so a ``[B, T]`` batch of an
@@ -86,40 +89,34 @@ class ExperienceRoadmap:
     With ``lazy=False`` every candidate edge is checked at construction, in one
     batched call over all candidate pairs of all episodes. With ``lazy=True``
     none is; :meth:`check_edges` checks the ones a search asks for (the
-    Lazy-PRM scheme :func:`~torchrl_silp.planning.search.roadmap_paths` uses):
-    a random-policy episode of 50 steps has ~700 candidate pairs at
-    ``d = 0.15`` (~7,500 subdivision configurations), of which the shortest
-    paths of a dozen queries use a few dozen.
+    Lazy-PRM scheme :func:`~torchrl_silp.planning.search.roadmap_paths` uses).
 
     Args:
-        env: the :class:`~torchrl_silp.envs.reach.UR5eReachEnv` whose model checks edges.
-        episodes: rollout TensorDict ``[..., T]`` with ``"observation"``,
-            ``("next", "observation")``, ``("next", "collision")`` and
-            ``("next", "done")`` (optionally ``("collector", "traj_ids")`` and
-            ``("next", "success")``).
-        d: largest TCP distance of an edge (m); the paper's 0.15.
-        step_size: subdivision step, or the finest bisection interval of the
-            certified check (rad).
+        model: the :class:`~torchrl_silp.models.TaskModel` (or an env holding one as ``.model``).
+        episodes: rollout TensorDict ``[..., T]`` with the model's state keys at the root,
+            its configuration and achieved goal under ``"next"``, ``("next", "collision")``
+            and ``("next", "done")`` (optionally ``("collector", "traj_ids")``,
+            ``("next", "success")`` and the goal configuration).
+        d: largest achieved-goal distance of an edge (m); the paper's 0.15.
+        step_size: resolution of the edge check (rad); the model's ``motion_resolution`` by default.
         lazy: defer the edge checks to :meth:`check_edges`.
-        certify: prove edges free point by point (slower, conservative near
-            contact) instead of checking samples.
         goal_node: also make each episode's real goal configuration
-            (``"goal_q"``, collision-free by the task's construction) a node, the
+            (``model.goal_config_key``, free by the task's construction) a node, the
             last of its episode, so that an episode that came within ``d`` of
             its goal yields a demonstration that reaches the goal itself rather
             than the visited state nearest it. An extension of the paper, whose
-            nodes are visited states only; needs ``"goal_q"`` in ``episodes``.
+            nodes are visited states only.
 
     Attributes:
-        q: ``[E, N, 3]`` joint angles of the nodes (zero padding).
-        tcp: ``[E, N, 3]`` TCP positions of the nodes.
+        config: ``[E, N, D]`` configurations of the nodes (zero padding).
+        achieved_goal: ``[E, N, G]`` achieved goals of the nodes.
         mask: bool ``[E, N]``, True on real nodes (the first ``num_nodes[e]``).
         num_nodes: long ``[E]``.
-        obstacle: ``[E, 6]`` and goal ``[E, 3]`` of each episode.
+        scene: TensorDict ``[E]`` of the scene keys, and ``goal`` ``[E, G]``: each episode's desired goal.
         reached: bool ``[E]``, whether the episode reached its goal.
         is_goal_node: bool ``[E, N]``, True on the goal node of each episode
             (all False without ``goal_node``).
-        distance: ``[E, N, N]`` TCP distances between nodes.
+        distance: ``[E, N, N]`` achieved-goal distances between nodes.
         candidates: bool ``[E, N, N]``, symmetric: node pairs within ``d``.
         checked: bool ``[E, N, N]``: candidate edges whose check has run.
         colliding: bool ``[E, N, N]``: checked edges that failed it.
@@ -128,8 +125,8 @@ class ExperienceRoadmap:
         >>> from torchrl_silp import UR5eReachEnv
         >>> env = UR5eReachEnv(num_envs=2, seed=0)
         >>> episodes = env.rollout(20, break_when_any_done=False)
-        >>> roadmap = ExperienceRoadmap(env, episodes, d=0.15)
-        >>> roadmap.q.shape[0], roadmap.adjacency.shape == roadmap.distance.shape
+        >>> roadmap = ExperienceRoadmap(env.model, episodes, d=0.15)
+        >>> roadmap.config.shape[0], roadmap.adjacency.shape == roadmap.distance.shape
         (2, True)
         >>> bool((roadmap.weights[roadmap.adjacency] <= 0.15).all())
         True
@@ -137,86 +134,88 @@ class ExperienceRoadmap:
 
     def __init__(
         self,
-        env,
+        model,
         episodes: TensorDictBase,
         *,
         d: float = 0.15,
-        step_size: float = 0.02,
+        step_size: float | None = None,
         lazy: bool = False,
-        certify: bool = False,
         goal_node: bool = False,
     ):
+        model = as_model(model)
+        self.model = model
         self.d = _check_positive("d", d, "metres")
-        self.step_size = _check_positive("step_size", step_size, "radians")
+        self.step_size = model.motion_resolution if step_size is None else _check_positive("step_size", step_size, "radians")
         if not isinstance(lazy, bool):
             raise TypeError(f"lazy must be a bool, got {lazy!r}")
-        if not isinstance(certify, bool):
-            raise TypeError(f"certify must be a bool, got {certify!r}")
         if not isinstance(goal_node, bool):
             raise TypeError(f"goal_node must be a bool, got {goal_node!r}")
-        if goal_node and episodes.get("goal_q", None) is None:
-            raise ValueError('goal_node=True needs "goal_q" (the goal configuration) in episodes')
-        self.certify = certify
-        self._radius = None  # clearance_radius of every node, on the first certified check
-        for name in ("collides", "transition", "outcome"):
-            if not callable(getattr(env, name, None)):
-                raise TypeError(f"env must be a UR5eReachEnv (with .{name}), got {type(env).__name__}")
         starts, episode = split_episodes(episodes)
-        for key in ("observation", ("next", "observation"), ("next", "collision")):
-            if episodes.get(key, None) is None:
-                raise ValueError(f"episodes must hold {key!r}")
-        self.env = env
+        cfg_key, goal_key = model.config_key, model.achieved_goal_key
+        needed = [*model.state_keys, ("next", cfg_key), ("next", goal_key), ("next", "collision")]
+        if goal_node:
+            needed.append(model.goal_config_key)
+        missing = [k for k in needed if episodes.get(k, None) is None]
+        if missing:
+            raise ValueError(f"episodes must hold the keys {missing} (the task model's named state)")
         T = episodes.batch_size[-1]
-        obs = episodes.get("observation").reshape(-1, T, 15)
-        next_obs = episodes.get(("next", "observation")).reshape(-1, T, 15)
+        D, G = model.config_dim, model.goal_dim
+
+        def rows(key, width):
+            return episodes.get(key).reshape(-1, T, width)
+
+        config, next_config = rows(cfg_key, D), rows(("next", cfg_key), D)
+        achieved, next_achieved = rows(goal_key, G), rows(("next", goal_key), G)
         collision = episodes.get(("next", "collision")).reshape(-1, T)
         success = episodes.get(("next", "success"), None)
-        device = obs.device
+        device = config.device
         E = int(episode[-1, -1]) + 1
 
         # Two candidate slots per step, in visiting order: the state an episode
         # starts from, and the next state unless it collided.
-        slot_state = torch.stack([obs, next_obs], dim=2).reshape(-1, 15)
+        slot_config = torch.stack([config, next_config], dim=2).reshape(-1, D)
+        slot_goal = torch.stack([achieved, next_achieved], dim=2).reshape(-1, G)
         slot_valid = torch.stack([starts, ~collision], dim=2).reshape(-1)
         slot_episode = episode.unsqueeze(-1).expand(-1, -1, 2).reshape(-1)
         keep = slot_valid.nonzero().squeeze(-1)
-        state, node_episode = slot_state[keep], slot_episode[keep]
+        node_config, node_goal, node_episode = slot_config[keep], slot_goal[keep], slot_episode[keep]
         first_step = starts.reshape(-1).nonzero().squeeze(-1)
-        first_obs = obs.reshape(-1, 15)[first_step]
-        self.obstacle = first_obs[:, 6:12].contiguous()
-        self.goal = first_obs[:, 12:15].contiguous()
+        flat = episodes.reshape(-1)
+        self.scene = flat.select(*model.scene_keys)[first_step].clone()
+        self.goal = flat.get(model.desired_goal_key)[first_step].contiguous()
         reached = torch.zeros(E, dtype=torch.long, device=device)
         if success is not None:
             reached.index_add_(0, episode.reshape(-1), success.reshape(-1).long())
         self.reached = reached > 0
 
-        # a 7th column flags goal nodes through the padding and the de-duplication
-        rows = torch.cat([state[:, :6], torch.zeros_like(state[:, :1])], dim=-1)
+        # a last column flags goal nodes through the padding and the de-duplication
+        rows_ = torch.cat([node_config, node_goal.to(node_config.dtype), torch.zeros_like(node_config[:, :1])], dim=-1)
         if goal_node:
-            goal_q = episodes.get("goal_q").reshape(-1, 3)[first_step].to(rows.dtype)
-            goal_rows = torch.cat([goal_q, self.goal.to(rows.dtype), torch.ones_like(goal_q[:, :1])], dim=-1)
-            rows = torch.cat([rows, goal_rows])
+            goal_q = flat.get(model.goal_config_key)[first_step].to(rows_.dtype)
+            goal_rows = torch.cat([goal_q, self.goal.to(rows_.dtype), torch.ones_like(goal_q[:, :1])], dim=-1)
+            rows_ = torch.cat([rows_, goal_rows])
             node_episode = torch.cat([node_episode, torch.arange(E, device=device)])
             # stable: visiting order kept, each goal node last in its episode
             node_episode, order = torch.sort(node_episode, stable=True)
-            rows = rows[order]
-        qt, mask = self._pad(rows, node_episode, E)
+            rows_ = rows_[order]
+        qt, mask = self._pad(rows_, node_episode, E)
         # exact repeats: a node equal to an earlier node of its episode
-        q = qt[..., :3]
+        q = qt[..., :D]
         same = (q.unsqueeze(2) == q.unsqueeze(1)).all(-1) & mask.unsqueeze(1) & mask.unsqueeze(2)
         repeat = torch.tril(same, diagonal=-1).any(-1)
         if bool(repeat.any()):
-            flat = mask & ~repeat
-            ep = torch.arange(E, device=device).unsqueeze(-1).expand_as(flat)[flat]
-            qt, mask = self._pad(qt[flat], ep, E)
-        self.q, self.tcp, self.mask = qt[..., :3].contiguous(), qt[..., 3:6].contiguous(), mask
-        self.is_goal_node = (qt[..., 6] > 0.5) & mask
+            keep_nodes = mask & ~repeat
+            ep = torch.arange(E, device=device).unsqueeze(-1).expand_as(keep_nodes)[keep_nodes]
+            qt, mask = self._pad(qt[keep_nodes], ep, E)
+        self.config = qt[..., :D].contiguous()
+        self.achieved_goal = qt[..., D : D + G].contiguous()
+        self.mask = mask
+        self.is_goal_node = (qt[..., -1] > 0.5) & mask
         self.num_nodes = mask.sum(-1)
-        q, tcp = self.q, self.tcp
 
-        self.distance = torch.cdist(tcp, tcp)
+        self.distance = torch.cdist(self.achieved_goal, self.achieved_goal)
         pair = mask.unsqueeze(1) & mask.unsqueeze(2)
-        eye = torch.eye(q.shape[1], dtype=torch.bool, device=device)
+        eye = torch.eye(self.config.shape[1], dtype=torch.bool, device=device)
         self.candidates = pair & ~eye & (self.distance <= self.d)
         self.checked = torch.zeros_like(self.candidates)
         self.colliding = torch.zeros_like(self.candidates)
@@ -225,6 +224,15 @@ class ExperienceRoadmap:
         self._optimistic = torch.where(self.candidates, self.distance, math.inf)
         if not lazy:
             self.check_edges()
+
+    # names of the UR5e days: the configuration and the TCP (the achieved goal)
+    @property
+    def q(self) -> torch.Tensor:
+        return self.config
+
+    @property
+    def tcp(self) -> torch.Tensor:
+        return self.achieved_goal
 
     @staticmethod
     def _pad(values: torch.Tensor, episode: torch.Tensor, E: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -243,7 +251,7 @@ class ExperienceRoadmap:
     def check_edges(
         self, episode: torch.Tensor | None = None, i: torch.Tensor | None = None, j: torch.Tensor | None = None
     ) -> int:
-        """Run the subdivision check on unchecked candidate edges, all in one batch.
+        """Run the model's motion check on unchecked candidate edges, all in one batch.
 
         Args:
             episode, i, j: long ``[K]`` edges ``(episode, i, j)`` to check, in
@@ -253,7 +261,7 @@ class ExperienceRoadmap:
         Returns:
             the number of (undirected) edges checked.
         """
-        N = self.q.shape[1]
+        N = self.config.shape[1]
         if episode is None:
             episode, i, j = torch.triu(self.candidates & ~self.checked, diagonal=1).nonzero(as_tuple=True)
         else:
@@ -265,16 +273,8 @@ class ExperienceRoadmap:
             episode, i, j = key // (N * N), (key // N) % N, key % N
         if episode.numel() == 0:
             return 0
-        rho_i = rho_j = None
-        if self.certify:
-            if self._radius is None:
-                E, N = self.mask.shape
-                box = self.obstacle.unsqueeze(1).expand(E, N, 6).reshape(-1, 6)
-                self._radius = clearance_radius(self.env, self.q.reshape(-1, 3), box).reshape(E, N)
-            rho_i, rho_j = self._radius[episode, i], self._radius[episode, j]
-        free = segment_collision_free(
-            self.env, self.q[episode, i], self.q[episode, j], self.obstacle[episode], self.step_size,
-            certify=self.certify, rho_from=rho_i, rho_to=rho_j,
+        free = self.model.segment_collision_free(
+            self.config[episode, i], self.config[episode, j], self.scene[episode], self.step_size
         )
         e2, a, b = torch.cat([episode, episode]), torch.cat([i, j]), torch.cat([j, i])
         self.checked[e2, a, b] = True
@@ -303,16 +303,16 @@ class ExperienceRoadmap:
 
     @property
     def num_episodes(self) -> int:
-        return self.q.shape[0]
+        return self.config.shape[0]
 
     @property
     def device(self) -> torch.device:
-        return self.q.device
+        return self.config.device
 
     # ---------------------------------------------------------------- queries
     def nearest_goal_node(self) -> torch.Tensor:
-        """long ``[E]``: the visited node of each episode whose TCP is nearest its real goal."""
-        dist = (self.tcp - self.goal.unsqueeze(1)).norm(dim=-1)
+        """long ``[E]``: the visited node of each episode whose achieved goal is nearest its desired goal."""
+        dist = (self.achieved_goal - self.goal.unsqueeze(1).to(self.achieved_goal.dtype)).norm(dim=-1)
         return dist.masked_fill(~self.mask | self.is_goal_node, math.inf).argmin(-1)
 
     def queries(

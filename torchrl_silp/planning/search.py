@@ -405,4 +405,4 @@ def _greedy_on_roadmap(roadmap, episode, start, goal) -> torch.Tensor:
         roadmap.check_edges(episode[qi], cur[qi], j)
         return roadmap.optimistic_weights[episode, cur]
 
-    return _greedy_walk(rows_fn, roadmap.tcp, episode, start, goal, None)
+    return _greedy_walk(rows_fn, roadmap.achieved_goal, episode, start, goal, None)
