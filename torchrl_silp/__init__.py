@@ -4,7 +4,8 @@ from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, Mixe
 from torchrl_silp.envs import ReachEnv, UR5eReachEnv, UR5eReachGymEnv  # importing registers the Gymnasium ids
 from torchrl_silp.eval import evaluate
 from torchrl_silp.geometry import CollisionReason, sphere_box_distance
-from torchrl_silp.models import TaskModel, UR5eReach
+from torchrl_silp.models import PandaReach, TaskModel, UR5eReach
+from torchrl_silp.panda import Panda
 from torchrl_silp.modules import GPGuidedExploration
 from torchrl_silp.objectives import SILPLoss
 from torchrl_silp.planning import ExperienceRoadmap, plan_demonstrations
@@ -14,7 +15,9 @@ from torchrl_silp.transforms import CollisionHandling, GoalRelative, PerceptionN
 __all__ = [
     "TaskModel",
     "UR5eReach",
+    "PandaReach",
     "UR5e",
+    "Panda",
     "ReachEnv",
     "UR5eReachEnv",
     "UR5eReachGymEnv",

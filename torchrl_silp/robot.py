@@ -36,8 +36,8 @@ TCP_FRAME = "tcp"
 
 
 def default_urdf_path() -> str:
-    """Path of the URDF shipped inside the installed package."""
-    return str(resources.files("torchrl_silp") / "assets" / "ur5e.urdf")
+    """Path of ``assets/ur5e.urdf``, installed with the package as ``torchrl_silp.assets``."""
+    return str(resources.files("torchrl_silp.assets") / "ur5e.urdf")
 
 
 def _rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:

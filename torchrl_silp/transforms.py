@@ -99,8 +99,7 @@ class CollisionHandling(_ModelTransform):
         return tensordict_reset
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        done = self.parent.full_done_spec["done"] if self.parent is not None else None
-        shape = done.shape if done is not None else (*observation_spec.shape, 1)
+        shape = (*observation_spec.shape, 1)
         observation_spec["discard"] = Binary(n=1, shape=shape, dtype=torch.bool, device=observation_spec.device)
         return observation_spec
 
@@ -207,3 +206,14 @@ class PerceptionNoise(_ModelTransform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        # the noisy observation is unbounded; declared here so that the transform also
+        # works without the model's CatTensors before it (it then builds the observation)
+        batch = observation_spec.shape
+        parts = [observation_spec[key] for key in self.model.observation_keys]
+        size = sum(math.prod(p.shape[len(batch):]) for p in parts)
+        observation_spec[self.out_key] = Unbounded(
+            shape=(*batch, size), dtype=parts[0].dtype, device=observation_spec.device
+        )
+        return observation_spec

@@ -1,9 +1,24 @@
 """Environments: the batched TorchRL reach envs over task models and their Gymnasium twins.
 
-Importing this package registers the Gymnasium id ``torchrl_silp/UR5eReach-v0``.
+Importing this package registers the Gymnasium ids ``torchrl_silp/UR5eReach-v0`` and ``torchrl_silp/PandaReach-v0``.
 """
 
 from torchrl_silp.envs.reach import COLLISION_TYPES, ReachEnv, UR5eReachEnv
-from torchrl_silp.envs.gym import ENV_ID, UR5eReachGymEnv  # importing registers the Gymnasium id
+from torchrl_silp.envs.gym import (  # importing registers the Gymnasium ids
+    ENV_ID,
+    PANDA_ENV_ID,
+    PandaReachGymEnv,
+    ReachGymEnv,
+    UR5eReachGymEnv,
+)
 
-__all__ = ["ReachEnv", "UR5eReachEnv", "COLLISION_TYPES", "UR5eReachGymEnv", "ENV_ID"]
+__all__ = [
+    "ReachEnv",
+    "UR5eReachEnv",
+    "COLLISION_TYPES",
+    "ReachGymEnv",
+    "UR5eReachGymEnv",
+    "PandaReachGymEnv",
+    "ENV_ID",
+    "PANDA_ENV_ID",
+]

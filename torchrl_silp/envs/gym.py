@@ -1,6 +1,6 @@
 """Gymnasium twins of the TorchRL reach envs (numpy in, numpy out).
 
-Importing this module registers the id ``torchrl_silp/UR5eReach-v0``.
+Importing this module registers the ids ``torchrl_silp/UR5eReach-v0`` and ``torchrl_silp/PandaReach-v0``.
 """
 
 from __future__ import annotations
@@ -16,13 +16,15 @@ from torchrl.envs.utils import step_mdp
 
 from torchrl_silp.envs.reach import ReachEnv
 from torchrl_silp.models.base import TaskModel
+from torchrl_silp.models.panda import PandaReach
 from torchrl_silp.models.ur5e import UR5eReach
 from torchrl_silp.robot import UR5e
 from torchrl_silp.transforms import CollisionHandling
 
-__all__ = ["ReachGymEnv", "UR5eReachGymEnv", "ENV_ID"]
+__all__ = ["ReachGymEnv", "UR5eReachGymEnv", "PandaReachGymEnv", "ENV_ID", "PANDA_ENV_ID"]
 
 ENV_ID = "torchrl_silp/UR5eReach-v0"
+PANDA_ENV_ID = "torchrl_silp/PandaReach-v0"
 
 
 class ReachGymEnv(gymnasium.Env):
@@ -223,11 +225,37 @@ class UR5eReachGymEnv(ReachGymEnv):
         )
 
 
+class PandaReachGymEnv(ReachGymEnv):
+    """The Franka Panda reach task (:class:`~torchrl_silp.models.PandaReach`) as a :class:`gymnasium.Env`.
+
+    Registered as ``torchrl_silp/PandaReach-v0``. Observation ``(7 + 3 + 6 * num_boxes + 3,)``
+    float32: joint angles, TCP xyz, the boxes' AABBs, goal xyz; action ``(7,)`` in ``[-1, 1]``.
+
+    Args:
+        max_steps: episode length before truncation.
+        collision_type: 0, 1 or 2 (see :class:`~torchrl_silp.transforms.CollisionHandling`).
+        num_boxes: boxes on the table.
+
+    Examples:
+        >>> import gymnasium as gym
+        >>> import torchrl_silp  # registers the id
+        >>> env = gym.make("torchrl_silp/PandaReach-v0")
+        >>> obs, info = env.reset(seed=0)
+        >>> obs.shape, env.action_space.shape
+        ((19,), (7,))
+    """
+
+    def __init__(self, max_steps: int = 50, collision_type: int = 2, num_boxes: int = 1):
+        super().__init__(PandaReach(num_boxes=num_boxes), max_steps, collision_type)
+
+
 def _register() -> None:
     # A second import (reload, or a test that re-imports) must not register
     # twice: gymnasium warns about overriding an existing id.
     if ENV_ID not in gymnasium.registry:
         gymnasium.register(id=ENV_ID, entry_point="torchrl_silp.envs.gym:UR5eReachGymEnv")
+    if PANDA_ENV_ID not in gymnasium.registry:
+        gymnasium.register(id=PANDA_ENV_ID, entry_point="torchrl_silp.envs.gym:PandaReachGymEnv")
 
 
 _register()

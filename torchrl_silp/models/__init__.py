@@ -6,12 +6,33 @@ from torchrl_silp.models.base import (
     DESIRED_GOAL_KEY,
     GOAL_CONFIG_KEY,
     TaskModel,
+    as_model,
 )
+from torchrl_silp.models.panda import PandaReach
 from torchrl_silp.models.ur5e import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach
+
+#: task models by the name configs use (``env.name`` of the recipes)
+TASK_MODELS: dict[str, type[TaskModel]] = {"ur5e_reach": UR5eReach, "panda_reach": PandaReach}
+
+
+def make_model(name: str, **kwargs) -> TaskModel:
+    """The task model registered as ``name`` in :data:`TASK_MODELS`, built with ``kwargs``.
+
+    Examples:
+        >>> make_model("ur5e_reach", task_branch="any").task_branch
+        'any'
+    """
+    if name not in TASK_MODELS:
+        raise ValueError(f"name must be one of {sorted(TASK_MODELS)}, got {name!r}")
+    return TASK_MODELS[name](**kwargs)
 
 __all__ = [
     "TaskModel",
+    "as_model",
     "UR5eReach",
+    "PandaReach",
+    "TASK_MODELS",
+    "make_model",
     "CONFIG_KEY",
     "ACHIEVED_GOAL_KEY",
     "DESIRED_GOAL_KEY",

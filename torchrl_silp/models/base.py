@@ -255,7 +255,7 @@ class TaskModel(ABC):
         h = self.motion_resolution if resolution is None else float(resolution)
         batch = config_from.shape[:-1]
         delta = config_to - config_from
-        span = float(delta.abs().amax()) if delta.numel() else 0.0
+        span = float(delta.detach().abs().amax()) if delta.numel() else 0.0
         n = max(int(math.ceil(span / h - 1e-9)), 1) + 1
         t = torch.linspace(0, 1, n, dtype=config_from.dtype, device=config_from.device).view(n, *([1] * len(batch)), 1)
         samples = config_from + t * delta  # (n, ..., D)

@@ -1,0 +1,1 @@
+"""Robot descriptions (URDF), installed as the package ``torchrl_silp.assets``."""
