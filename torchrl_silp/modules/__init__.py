@@ -1,5 +1,6 @@
-"""Policy-side modules: GP-guided exploration."""
+"""Policy- and network-side modules: GP-guided exploration, the next-goal Q-network input, actor averaging."""
 
+from torchrl_silp.modules.averaging import make_averaged_actor
 from torchrl_silp.modules.gp_exploration import (
     GP_EXPLORATION_MODES,
     GPGuidedExploration,
@@ -9,10 +10,13 @@ from torchrl_silp.modules.gp_exploration import (
     gp_posterior,
     matern52_kernel,
 )
+from torchrl_silp.modules.networks import NextGoalOffsetQ
 
 __all__ = [
     "GPGuidedExploration",
     "GP_EXPLORATION_MODES",
+    "NextGoalOffsetQ",
+    "make_averaged_actor",
     "matern52_kernel",
     "gp_posterior",
     "gp_negative_log_marginal_likelihood",
