@@ -4,13 +4,17 @@
     python recipes/bc.py source=prm logger.exp_name=bc_prm
     python recipes/bc.py source=prm resume=true   # continue a killed run; demonstrations are not collected again
 
-``n_demos`` demonstration episodes are collected on training tasks (seeded by
-``seed``, never the test seed), from a trained run's evaluated actor rolled out
-deterministically (``source=policy``) or from OMPL's PRM (``source=prm``); the
-transitions of the successful episodes are kept and cached in
-``run_dir/demos.pt``. The recipes' deterministic tanh actor is then fitted to
-their actions with TorchRL's ``BCLoss`` and evaluated on the fixed test tasks
-of ``evaluate``. The training wall time counted is collection plus fitting.
+``n_demos`` demonstration episodes are collected on training tasks of the task
+model ``env.name`` (seeded by ``seed``, never the test seed), from a trained
+run's evaluated actor rolled out deterministically (``source=policy``) or from
+OMPL's PRM (``source=prm``); the transitions of the successful episodes are
+kept and cached in ``run_dir/demos.pt``. A demonstration transition holds the
+model's named state (root and ``"next"``), the action, what the BC actor reads
+(``utils.observation_keys``, built from the named state by
+``utils.make_observation_transform``) and the episode's index. The recipes'
+deterministic tanh actor is then fitted to the actions with TorchRL's
+``BCLoss`` and evaluated on the fixed test tasks of ``evaluate``. The training
+wall time counted is collection plus fitting.
 
 ``BCLoss`` is used on the deterministic actor with ``loss_function="l2"``
 (mean squared error to the demonstrated actions). On the SAC TanhNormal actor
@@ -20,7 +24,9 @@ policy actions at +-1); and the policy is deterministic at test time anyway.
 
 Writes ``run_dir/summary.json``, ``history.json`` (the periodic evaluations),
 ``config.yaml`` and ``checkpoint/state.pt``. ``run(cfg)`` returns the summary,
-for sweeps that call it in-process. Configuration: ``recipes/config/bc.yaml``.
+for sweeps that call it in-process. Configuration: ``recipes/config/bc.yaml``
+(typed by ``schema.BCConfig``; ranges and choices are checked by the library
+where the values are used).
 """
 
 from __future__ import annotations
@@ -29,118 +35,128 @@ import os
 import sys
 import time
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 
 import hydra
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from torch import optim
+from torchrl.envs import Compose, TransformedEnv
 from torchrl.objectives import BCLoss
 
 sys.path.insert(0, str(Path(__file__).parent))
-from utils import (  # noqa: E402
-    check_choice,
-    check_device,
-    checkpoint_exists,
-    load_trained_networks,
-    make_actor_critic,
-    make_env,
-    start_run,
-    write_results,
-)
+import schema  # noqa: E402
+import utils  # noqa: E402
 
-from torchrl_silp import UR5eReachEnv  # noqa: E402
-from torchrl_silp.envs.reach import TASK_BRANCHES, WORKSPACE_EXIT_MODES  # noqa: E402
+from torchrl_silp import CollisionHandling, ReachEnv  # noqa: E402
+from torchrl_silp.baselines import collect_prm_demonstrations  # noqa: E402  (OMPL only when called)
+from torchrl_silp.data import transition_keys  # noqa: E402
 from torchrl_silp.eval import episode_outcomes, evaluate  # noqa: E402
+from torchrl_silp.models.base import as_model  # noqa: E402
+
+schema.register_bc()
 
 SOURCES = ("policy", "prm")
-# what a demonstration transition holds, whichever its source (the PRM collector's keys)
-DEMO_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
-             ("next", "terminated"), "episode")
 COLLECT_BATCH = 1000  # source=policy: training tasks rolled out at once
+# the keys of a demonstration besides transition_keys(model, observation keys): as collect_prm_demonstrations
+DEMO_EXTRA_KEYS = ("is_demo", "episode")
 
 
-# ---------------------------------------------------------------- validation
-def _positive_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
+# ---------------------------------------------------------------- checks
+def check_config(cfg: DictConfig) -> None:
+    """What only this recipe can check (the library checks the rest where the values are used).
 
-
-def validate(cfg: DictConfig) -> None:
-    """Reject bad configurations before any work is done (errors name the field)."""
-    check_choice("source", cfg.source, SOURCES)
-    positive = {
-        "n_demos": cfg.n_demos,
-        "env.max_steps": cfg.env.max_steps,
-        "optim.batch_size": cfg.optim.batch_size,
-        "optim.n_updates": cfg.optim.n_updates,
-        "eval.n_tasks": cfg.eval.n_tasks,
-        "eval.every_updates": cfg.eval.every_updates,
-        "checkpoint.every_updates": cfg.checkpoint.every_updates,
-    }
-    for name, value in positive.items():
-        if not _positive_int(value):
+    ``source``, the recipe's own loop counts, and the source run of ``source=policy``:
+    a directory holding ``config.yaml`` and a checkpoint, trained on ``env.name``.
+    """
+    if cfg.source not in SOURCES:
+        raise ValueError(f"source must be one of {SOURCES}, got {cfg.source!r}")
+    for name in ("optim.batch_size", "optim.n_updates", "eval.every_updates", "checkpoint.every_updates"):
+        value = OmegaConf.select(cfg, name)
+        if value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
-    for name, value in (("seed", cfg.seed), ("eval.seed", cfg.eval.seed), ("threads", cfg.threads)):
-        if not isinstance(value, int) or isinstance(value, bool) or (name == "threads" and value < 0):
-            raise ValueError(f"{name} must be {'a non-negative' if name == 'threads' else 'an'} int, got {value!r}")
-    for name, value in (("optim.lr", cfg.optim.lr), ("prm_budget_s", cfg.prm_budget_s)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise ValueError(f"{name} must be a positive number, got {value!r}")
-    sizes = cfg.network.hidden_sizes
-    if not OmegaConf.is_list(sizes) or not len(sizes) or not all(_positive_int(s) for s in sizes):
-        raise ValueError(f"network.hidden_sizes must be a non-empty list of positive ints, got {sizes!r}")
-    check_choice("env.workspace_exit", cfg.env.workspace_exit, WORKSPACE_EXIT_MODES)
-    check_choice("env.task_branch", cfg.env.task_branch, TASK_BRANCHES)
-    check_device(cfg.device)
-    if cfg.source == "policy":
-        src = cfg.source_run_dir
-        if not src:
-            raise ValueError("source_run_dir must name a finished training run dir when source=policy, got null")
-        src = Path(src)
-        if not src.is_dir():
-            raise ValueError(f"source_run_dir {str(src)!r} is not a directory")
-        if not (src / "config.yaml").is_file():
-            raise ValueError(f"source_run_dir {str(src)!r} holds no config.yaml (the run's resolved config)")
-        if not checkpoint_exists(src / "checkpoint"):
-            raise ValueError(f"source_run_dir {str(src)!r} holds no checkpoint (expected checkpoint/state.pt)")
+    if cfg.source != "policy":
+        return
+    src = cfg.source_run_dir
+    if not src:
+        raise ValueError("source_run_dir must name a finished training run dir when source=policy, got null")
+    src = Path(src)
+    if not src.is_dir():
+        raise ValueError(f"source_run_dir {str(src)!r} is not a directory")
+    if not (src / "config.yaml").is_file():
+        raise ValueError(f"source_run_dir {str(src)!r} holds no config.yaml (the run's resolved config)")
+    if not utils.checkpoint_exists(src / "checkpoint"):
+        raise ValueError(f"source_run_dir {str(src)!r} holds no checkpoint (expected checkpoint/state.pt)")
+    trained_on = OmegaConf.select(OmegaConf.load(src / "config.yaml"), "env.name", default=None)
+    if trained_on != cfg.env.name:
+        raise ValueError(f"source_run_dir {str(src)!r} was trained on env.name={trained_on!r}, "
+                         f"this run's env.name is {cfg.env.name!r}")
 
 
 # -------------------------------------------------------------- demonstrations
-def load_source_policy(run_dir: Path, device) -> torch.nn.Module:
-    """A finished training run's evaluated actor (the averaged one if the run kept it), from its config and checkpoint."""
+def load_source_policy(run_dir: Path, model, device) -> tuple[torch.nn.Module, Compose]:
+    """A finished training run's evaluated actor (the averaged one if the run kept it) and what builds its inputs.
+
+    The actor is rebuilt from the run's ``config.yaml`` and loaded from its checkpoint;
+    the transform is the run's ``utils.make_observation_transform`` on ``model``.
+    """
     run_dir = Path(run_dir)
     source_cfg = OmegaConf.load(run_dir / "config.yaml")
-    env = make_env(source_cfg, device, seed=0)  # only its specs and model: no task is drawn from it
-    actor, _, _ = load_trained_networks(source_cfg, env, run_dir / "checkpoint", device)
-    return actor
+    env = utils.make_env(source_cfg, model, device, seed=0)  # only its specs: no task is drawn from it
+    actor, _, _ = utils.load_trained_networks(source_cfg, model, env, run_dir / "checkpoint", device)
+    return actor, utils.make_observation_transform(source_cfg, model)
 
 
 @torch.no_grad()
 def collect_policy_demonstrations(
     policy,
+    model,
     n_episodes: int,
     *,
     seed: int = 0,
     max_steps: int = 50,
-    workspace_exit: str = "collision",
-    task_branch: str = "front",
     device=None,
     progress: bool = False,
+    policy_transform=None,
+    observation_transform=None,
+    observation_keys: Sequence[NestedKey] = ("observation",),
 ) -> tuple[TensorDictBase, dict]:
     """Roll ``policy`` out deterministically on ``n_episodes`` training tasks; keep its successful episodes.
 
-    The tasks are those a batched ``UR5eReachEnv(seed=seed, collision_type=0)``
-    draws, ``COLLECT_BATCH`` at a time, as ``evaluate`` rolls a policy out on
-    the test tasks. Returns a flat TensorDict of the transitions of the
-    successful episodes (``DEMO_KEYS``, in time order per episode; ``"episode"``
-    is the episode's index among the ``n_episodes`` attempted) and the stats
-    ``n_attempted``, ``n_kept``, ``n_transitions``, ``success_rate``.
+    The tasks are those a batched ``ReachEnv(model, num_envs=min(n_episodes, COLLECT_BATCH),
+    seed=seed)`` draws on its successive resets, run as ``evaluate`` runs a policy on the
+    test tasks (collision type 0: a collision ends the episode).
+
+    Args:
+        policy: reads what ``policy_transform`` builds (the model's flat observation by default).
+        model: the task model (or an env holding one).
+        n_episodes: tasks attempted.
+        seed, max_steps, device, progress: the tasks' seed, the episode length, the env's
+            device, a tqdm bar.
+        policy_transform: builds the policy's inputs from the named state (its training env's
+            observation transforms).
+        observation_transform, observation_keys: build what the demonstrations keep for the
+            network that learns from them (as in ``collect_prm_demonstrations``).
+
+    Returns:
+        ``(demos, stats)``: a flat TensorDict of the transitions of the successful episodes, in
+        time order per episode, with the keys of ``transition_keys(model, observation_keys)``,
+        ``"is_demo"`` (True) and ``"episode"`` (the episode's index among the ``n_episodes``
+        attempted); ``stats`` holds ``n_attempted``, ``n_kept``, ``n_transitions``, ``success_rate``.
     """
+    if isinstance(n_episodes, bool) or not isinstance(n_episodes, int) or n_episodes < 1:
+        raise ValueError(f"n_episodes must be a positive int, got {n_episodes!r}")
+    model = as_model(model)
     batch = min(n_episodes, COLLECT_BATCH)
-    env = UR5eReachEnv(num_envs=batch, seed=seed, collision_type=0, max_steps=max_steps,
-                       workspace_exit=workspace_exit, task_branch=task_branch, device=device)
+    env = TransformedEnv(
+        ReachEnv(model, num_envs=batch, seed=seed, max_steps=max_steps, device=device),
+        Compose(CollisionHandling(0), model.observation_transform() if policy_transform is None else policy_transform),
+    )
+    build = model.observation_transform() if observation_transform is None else observation_transform
+    keys = (*transition_keys(model, observation_keys), *DEMO_EXTRA_KEYS)
     kept, attempted, n_kept = [], 0, 0
     with tqdm.tqdm(total=n_episodes, disable=not progress, desc="demonstrations") as pbar:
         while attempted < n_episodes:
@@ -150,7 +166,13 @@ def collect_policy_demonstrations(
             success[take:] = False  # the last batch may hold more tasks than are still wanted
             episode = torch.arange(attempted, attempted + batch, device=rollout.device)
             rollout.set("episode", episode.unsqueeze(-1).expand(rollout.batch_size))
-            kept.append(rollout[alive & success.unsqueeze(-1)].select(*DEMO_KEYS))
+            steps = rollout[alive & success.unsqueeze(-1)]  # flat, episode by episode, in time order
+            root = steps.select(*model.state_keys, "action", "episode")
+            root.set("is_demo", torch.ones(*root.batch_size, 1, dtype=torch.bool, device=root.device))
+            nxt = steps.get("next").select(*model.state_keys, "reward", "done", "terminated", "truncated")
+            root = build(root)
+            root.set("next", build(nxt))
+            kept.append(root.select(*keys))
             attempted += take
             n_kept += int(success.sum())
             pbar.update(take)
@@ -160,26 +182,24 @@ def collect_policy_demonstrations(
     return demos, stats
 
 
-def collect_demonstrations(cfg: DictConfig, device) -> tuple[TensorDictBase, dict]:
+def collect_demonstrations(cfg: DictConfig, model, device) -> tuple[TensorDictBase, dict]:
     """The demonstrations of ``cfg.source``: a flat TensorDict of successful transitions, and stats."""
-    common = dict(seed=cfg.seed, max_steps=cfg.env.max_steps, workspace_exit=cfg.env.workspace_exit,
-                  task_branch=cfg.env.task_branch, device=device, progress=cfg.progress)
+    common = dict(seed=cfg.seed, max_steps=cfg.env.max_steps, device=device, progress=cfg.progress,
+                  observation_transform=utils.make_observation_transform(cfg, model),
+                  observation_keys=utils.observation_keys(cfg))
     if cfg.source == "policy":
-        policy = load_source_policy(Path(cfg.source_run_dir), device)
-        return collect_policy_demonstrations(policy, cfg.n_demos, **common)
-    from torchrl_silp.baselines.prm import collect_prm_demonstrations  # OMPL: only for this source
-
-    demos, stats = collect_prm_demonstrations(cfg.n_demos, budget_s=cfg.prm_budget_s, **common)
-    demos = demos.select(*DEMO_KEYS).to(device)
-    n_kept = int(demos["episode"].unique().numel())
-    return demos, {**stats, "n_attempted": cfg.n_demos, "n_kept": n_kept, "n_transitions": demos.shape[0],
-                   "success_rate": n_kept / cfg.n_demos}
+        policy, policy_transform = load_source_policy(Path(cfg.source_run_dir), model, device)
+        return collect_policy_demonstrations(policy, model, cfg.n_demos, policy_transform=policy_transform, **common)
+    demos, stats = collect_prm_demonstrations(model, cfg.n_demos, cfg.prm_budget_s, **common)
+    return demos.to(device), stats
 
 
 def _collection_settings(cfg: DictConfig) -> dict:
     """What the cached demonstrations depend on: a resumed run must ask for the same."""
     out = {"source": cfg.source, "n_demos": cfg.n_demos, "seed": cfg.seed,
-           "env": OmegaConf.to_container(cfg.env, resolve=True)}
+           "env": {"name": cfg.env.name, "max_steps": cfg.env.max_steps,
+                   "model": OmegaConf.to_container(cfg.env.model, resolve=True)},
+           "observation_keys": list(utils.observation_keys(cfg))}
     if cfg.source == "policy":
         out["source_run_dir"] = str(Path(cfg.source_run_dir).resolve())
     else:
@@ -193,7 +213,7 @@ def _save_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def demonstrations(cfg: DictConfig, run_dir: Path, device) -> dict:
+def demonstrations(cfg: DictConfig, model, run_dir: Path, device) -> dict:
     """Cached demonstrations of a resumed run, else collected now and cached in ``run_dir/demos.pt``."""
     path = run_dir / "demos.pt"
     settings = _collection_settings(cfg)
@@ -206,7 +226,7 @@ def demonstrations(cfg: DictConfig, run_dir: Path, device) -> dict:
         print(f"demonstrations: {cache['stats']['n_kept']} episodes from the cache {path}")
         return cache
     start = time.perf_counter()
-    demos, stats = collect_demonstrations(cfg, device)
+    demos, stats = collect_demonstrations(cfg, model, device)
     cache = {"settings": settings, "demos": demos, "stats": stats,
              "collection_wall_s": time.perf_counter() - start}
     _save_atomic(cache, path)
@@ -214,15 +234,16 @@ def demonstrations(cfg: DictConfig, run_dir: Path, device) -> dict:
 
 
 # ----------------------------------------------------------------- BC policy
-def make_bc_actor(cfg: DictConfig, device) -> torch.nn.Module:
-    """The BC policy: the recipes' deterministic tanh actor (that of DDPG/TD3) on ``cfg.network``."""
+def make_bc_actor(cfg: DictConfig, model, device) -> torch.nn.Module:
+    """The BC policy: the recipes' deterministic tanh actor (that of DDPG/TD3) on ``cfg.network``,
+    reading ``utils.observation_keys(cfg)``."""
     net_cfg = OmegaConf.create({
         "algorithm": "ddpg",
         "network": {"hidden_sizes": list(cfg.network.hidden_sizes), "goal_relative": bool(cfg.network.goal_relative),
                     "next_tcp_feature": False},
     })
-    env = UR5eReachEnv(num_envs=1, device=device)  # specs only
-    actor, _ = make_actor_critic(net_cfg, env, device)  # the Q-network is left unused
+    env = utils.make_env(cfg, model, device, seed=0)  # specs only
+    actor, _ = utils.make_actor_critic(net_cfg, model, env, device)  # the Q-network is left unused
     return actor
 
 
@@ -236,19 +257,22 @@ def make_bc_loss(actor) -> BCLoss:
 # ----------------------------------------------------------------------- run
 def run(cfg: DictConfig) -> dict:
     """Collect (or load) the demonstrations, fit the BC policy, evaluate, checkpoint, report. Returns the summary."""
-    validate(cfg)
-    device, run_dir = start_run(cfg)
+    check_config(cfg)
+    device, run_dir = utils.start_run(cfg)
     ckpt = run_dir / "checkpoint" / "state.pt"
+    # everything the library checks is built before the demonstrations are collected
+    model = utils.make_model(cfg, device)
+    actor = make_bc_actor(cfg, model, device)
+    loss = make_bc_loss(actor)
+    optimizer = optim.Adam(loss.parameters(), lr=cfg.optim.lr)
+    keys = utils.observation_keys(cfg)
 
-    cache = demonstrations(cfg, run_dir, device)
+    cache = demonstrations(cfg, model, run_dir, device)
     demos, stats, collection_wall_s = cache["demos"], cache["stats"], cache["collection_wall_s"]
     if not demos.shape[0]:  # (a TensorDict's numel() is never below 1)
         raise RuntimeError(f"none of the {stats['n_attempted']} demonstration episodes succeeded: nothing to clone")
-    data = demos.select("observation", "action").to(device)
+    data = demos.select(*keys, "action").to(device)
 
-    actor = make_bc_actor(cfg, device)
-    loss = make_bc_loss(actor)
-    optimizer = optim.Adam(loss.parameters(), lr=cfg.optim.lr)
     sampler = torch.Generator().manual_seed(cfg.seed)  # minibatch indices, on the CPU on every device
     counters = {"updates": 0, "bc_wall_s": 0.0}
     history: list[dict] = []
@@ -268,8 +292,9 @@ def run(cfg: DictConfig) -> dict:
                       "torch_rng": torch.get_rng_state()}, ckpt)
 
     def record(bc_loss: float | None) -> dict:
-        metrics = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, max_steps=cfg.env.max_steps,
-                           workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch, device=device)
+        metrics = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, model=model,
+                           observation_transform=utils.make_observation_transform(cfg, model),
+                           max_steps=cfg.env.max_steps, device=device)
         point = {"updates": counters["updates"], "train_wall_s": collection_wall_s + counters["bc_wall_s"],
                  "bc_wall_s": counters["bc_wall_s"], "bc_loss": bc_loss, **metrics}
         history.append(point)
@@ -307,6 +332,7 @@ def run(cfg: DictConfig) -> dict:
 
     summary = {
         "method": cfg.logger.exp_name,
+        "env": cfg.env.name,
         "seed": cfg.seed,
         "source": cfg.source,
         "source_run_dir": str(cfg.source_run_dir) if cfg.source == "policy" else None,
@@ -326,7 +352,7 @@ def run(cfg: DictConfig) -> dict:
         "episodes": 0,  # BC never interacts with the training env
         "frames": 0,
     }
-    write_results(run_dir, summary, history)
+    utils.write_results(run_dir, summary, history)
     return summary
 
 

@@ -5,8 +5,10 @@
     python recipes/prm.py budget_s=1.0 eval.n_tasks=200 progress=false
 
 Each test task of ``evaluate`` gets a fresh roadmap (the obstacle changes) and
-at most ``budget_s`` of planning; the path runs through the same test env as the
-learned policies, in action-bounded steps (``torchrl_silp.baselines.evaluate_prm``).
+at most ``budget_s`` of planning in the task model's configuration space; the path
+runs through the same test env as the learned policies, in action-bounded steps
+(``torchrl_silp.baselines.evaluate_prm``). The task model is
+``UR5eReach(workspace_exit=env.workspace_exit, task_branch=env.task_branch)``.
 Writes ``run_dir/summary.json``, ``history.json`` (empty: nothing is trained)
 and ``config.yaml``. ``run(cfg)`` returns the summary, for sweeps that call it
 in-process. Configuration: ``recipes/config/prm.yaml``. Needs OMPL
@@ -22,15 +24,22 @@ import hydra
 from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
-from utils import check_choice, check_device, start_run, write_results  # noqa: E402
+from utils import check_device, start_run, write_results  # noqa: E402
 
 from torchrl_silp.baselines import evaluate_prm  # noqa: E402
-from torchrl_silp.envs.reach import TASK_BRANCHES, WORKSPACE_EXIT_MODES  # noqa: E402
+from torchrl_silp.models import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach  # noqa: E402
+
+
+def _check_choice(name: str, value, allowed) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {tuple(allowed)}, got {value!r}")
 
 
 def validate(cfg: DictConfig) -> None:
     """Reject bad configurations before any planning (errors name the field)."""
     for name, value in (("budget_s", cfg.budget_s), ("edge_step", cfg.edge_step)):
+        if name == "edge_step" and value is None:  # the model's motion_resolution
+            continue
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
             raise ValueError(f"{name} must be a positive number, got {value!r}")
     for name, value, low in (("seed", cfg.seed, 0), ("eval.seed", cfg.eval.seed, 0), ("threads", cfg.threads, 0),
@@ -40,23 +49,28 @@ def validate(cfg: DictConfig) -> None:
     for name in ("simplify", "progress"):
         if not isinstance(cfg[name], bool):
             raise ValueError(f"{name} must be true or false, got {cfg[name]!r}")
-    check_choice("env.workspace_exit", cfg.env.workspace_exit, WORKSPACE_EXIT_MODES)
-    check_choice("env.task_branch", cfg.env.task_branch, TASK_BRANCHES)
+    _check_choice("env.workspace_exit", cfg.env.workspace_exit, WORKSPACE_EXIT_MODES)
+    _check_choice("env.task_branch", cfg.env.task_branch, TASK_BRANCHES)
     check_device(cfg.device)
+
+
+def make_model(cfg: DictConfig, device) -> UR5eReach:
+    """The task model the planner plans in and the test env runs: the paper's UR5e reach task."""
+    return UR5eReach(workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch, device=device)
 
 
 def run(cfg: DictConfig) -> dict:
     """Plan and execute every test task, report. Returns the summary dict."""
     validate(cfg)
     device, run_dir = start_run(cfg)  # (OMPL has its own generator, seeded from cfg.seed per plan)
+    model = make_model(cfg, device)
     metrics = evaluate_prm(
+        model,
         cfg.budget_s,
         n_tasks=cfg.eval.n_tasks,
         seed=cfg.eval.seed,
         ompl_seed=cfg.seed,
         max_steps=cfg.env.max_steps,
-        workspace_exit=cfg.env.workspace_exit,
-        task_branch=cfg.env.task_branch,
         device=device,
         progress=cfg.progress,
         edge_step=cfg.edge_step,

@@ -1,20 +1,196 @@
-"""SAC-SILP+: train a neural motion planner for the UR5e reach task (the main job).
+"""SAC-SILP+: train a neural motion planner (the main job); DDPG/TD3 and the Table 1 baselines by config.
 
-    python recipes/sac_silp.py                      # the default config
+    python recipes/sac_silp.py                      # the default config (UR5e reach)
+    python recipes/sac_silp.py env=panda_reach      # the Franka Panda reach task
     python recipes/sac_silp.py seed=1 resume=true   # continue a killed run
-    python recipes/sac_silp.py silp.demos=false silp.bc=false exploration.mode=none  # plain SAC
+    python recipes/sac_silp.py method=sac           # plain SAC (see config/method/)
 
-Builders live in ``recipes/utils.py``, the loop in ``recipes/loop.py``, the
-configuration in ``recipes/config/sac_silp.yaml``.
+Builders live in ``recipes/utils.py``, the typed config in ``recipes/schema.py``
+and ``recipes/config/``; the method in the package.
 """
 
+from __future__ import annotations
+
 import sys
+import time
 from pathlib import Path
 
 import hydra
+import torch
+import tqdm
+from omegaconf import DictConfig, OmegaConf
+from torchrl._utils import timeit
+from torchrl.record.loggers import get_logger
 
 sys.path.insert(0, str(Path(__file__).parent))
-from loop import train  # noqa: E402
+import schema  # noqa: E402
+import utils  # noqa: E402
+
+from torchrl_silp.data import EpisodeAssembler, cut_episodes  # noqa: E402
+from torchrl_silp.eval import evaluate  # noqa: E402
+from torchrl_silp.models import UR5eReach  # noqa: E402
+from torchrl_silp.modules import make_averaged_actor  # noqa: E402
+from torchrl_silp.viz import save_rollout_png  # noqa: E402
+
+schema.register()
+
+
+def train(cfg: DictConfig) -> dict:
+    """Train, evaluate on the fixed test tasks, checkpoint, report. Returns the summary dict."""
+    if cfg.collector.frames_per_batch % cfg.env.num_envs:
+        raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
+                         f"of env.num_envs ({cfg.env.num_envs})")
+    device, run_dir = utils.start_run(cfg)
+    ckpt_dir = run_dir / "checkpoint"
+    model = utils.make_model(cfg, device)
+    exploration = utils.make_exploration(cfg, model, device)
+    primers = [exploration.make_tensordict_primer()] if exploration is not None else []
+    env = utils.make_env(cfg, model, device, seed=cfg.seed, primers=primers)
+    actor, critic = utils.make_actor_critic(cfg, model, env, device)
+    loss, updater = utils.make_loss(cfg, actor, critic, model, env)
+    optimizers = utils.make_optimizers(cfg, loss)
+    policy = utils.make_policy(cfg, actor, exploration, env, device)
+    buffers = utils.make_buffers(cfg, model, device)
+    assembler = EpisodeAssembler()
+    her, decay = cfg.replay_buffer.her, cfg.eval.actor_average_decay
+    # the evaluated policy: the actor, or an average of its parameters over updates
+    averaged = make_averaged_actor(actor, decay) if decay is not None else None
+    evaluated = actor if averaged is None else averaged.module
+
+    counters = {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0,
+                "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None}
+    history, logger_state = [], None
+    resumed = cfg.resume and utils.checkpoint_exists(ckpt_dir)
+    if resumed:
+        state = utils.load_checkpoint(ckpt_dir, buffers)
+        loss.load_state_dict(state["loss"])
+        for name, opt in optimizers.items():
+            opt.load_state_dict(state["optimizers"][name])
+        if averaged is not None:
+            if state.get("averaged_actor") is None:
+                raise ValueError("eval.actor_average_decay is set but the checkpoint holds no averaged actor: "
+                                 "resume with the config the run was started with")
+            averaged.load_state_dict(state["averaged_actor"])
+        counters, history, logger_state = state["counters"], state["history"], state["logger"]
+        assembler.load_state_dict(state["assembler"])
+        torch.set_rng_state(state["torch_rng"])
+        env.base_env.rng.set_state(state["env_rng"])
+        # the collector starts new episodes: plan (and store) what was left unfinished
+        leftover = assembler.flush()
+        if leftover is not None and her:
+            buffers.extend(cut_episodes(leftover))
+        if leftover is not None and cfg.silp.demos:
+            buffers.demo_buffer.extend(leftover)
+        print(f"resumed from {ckpt_dir}: {counters['frames']} frames, {len(buffers)} transitions in the buffers")
+
+    logger = None
+    if cfg.logger.backend:
+        logger = get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"),
+                            experiment_name=cfg.logger.exp_name, state_dict=logger_state)
+        if not resumed:
+            logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
+
+    def checkpoint():
+        utils.save_checkpoint(ckpt_dir, {
+            "loss": loss.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+            "averaged_actor": averaged.state_dict() if averaged is not None else None,
+            "counters": dict(counters), "history": list(history), "assembler": assembler.state_dict(),
+            "logger": logger.state_dict() if hasattr(logger, "state_dict") else None,
+            "torch_rng": torch.get_rng_state(), "env_rng": env.base_env.rng.get_state(),
+        }, buffers)
+
+    def run_evaluation(return_rollout=False):
+        kwargs = dict(n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, model=model, max_steps=cfg.env.max_steps,
+                      observation_transform=utils.make_observation_transform(cfg, model), device=device)
+        metrics, rollout = evaluate(evaluated, return_rollout=True, **kwargs)
+        if averaged is not None:
+            metrics["online_success_rate"] = evaluate(actor, **kwargs)["success_rate"]
+        point = {"frames": counters["frames"], "episodes": counters["episodes"],
+                 "train_wall_s": counters["train_wall_s"], **metrics}
+        if not history or history[-1]["frames"] != counters["frames"]:
+            history.append(point)
+        if counters["time_to_095_s"] is None and metrics["success_rate"] >= 0.95:
+            counters["time_to_095_s"] = counters["train_wall_s"]
+        return (metrics, rollout) if return_rollout else metrics
+
+    remaining = cfg.collector.total_frames - counters["frames"]
+    collector = utils.make_collector(cfg, env, policy, total_frames=max(remaining, cfg.collector.frames_per_batch),
+                                     init_random_frames=max(0, cfg.collector.init_random_frames - counters["frames"]),
+                                     device=device)
+    updates_per_batch = max(1, int(round(cfg.collector.frames_per_batch * cfg.optim.utd_ratio)))
+
+    def update(sample):
+        loss_td = loss(sample)
+        sum(v for k, v in loss_td.items() if k.startswith("loss_")).backward()
+        for opt in optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        updater.step()
+        if averaged is not None:
+            averaged.update_parameters(actor)
+        return loss_td.detach()
+
+    pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress)
+    last_eval_frames = history[-1]["frames"] if history else 0
+    tick = time.perf_counter()
+    for batch in (collector if remaining > 0 else []):
+        counters["iterations"] += 1
+        counters["frames"] += batch.numel()
+        counters["episodes"] += int(batch["next", "done"].sum())
+        counters["collisions"] += int(batch["next", "collision"].sum())
+        finished = assembler.push(batch) if cfg.silp.demos or her else None
+        with timeit("rb - extend"):
+            if not her:
+                buffers.extend(batch)
+            elif finished is not None:  # hindsight relabelling reads episode boundaries from storage order
+                buffers.extend(finished)
+        if finished is not None and cfg.silp.demos:
+            with timeit("plan"):
+                buffers.demo_buffer.extend(finished)
+        losses = []
+        if counters["frames"] >= cfg.collector.init_random_frames and len(buffers):
+            with timeit("train"):
+                for _ in range(updates_per_batch):
+                    losses.append(update(buffers.sample()))
+                    counters["updates"] += 1
+        counters["train_wall_s"] += time.perf_counter() - tick
+        counters["planning_s"] = buffers.demo_buffer.planning_time
+        metrics = {"train/collisions": counters["collisions"], "train/episodes": counters["episodes"],
+                   "train/demos": len(buffers.demo_buffer), "time/train_wall_s": counters["train_wall_s"]}
+        ended = batch["next", "done"]
+        if ended.any():
+            metrics["train/episode_reward"] = batch["next", "episode_reward"][ended].mean().item()
+            metrics["train/success_rate"] = batch["next", "success"][ended].float().mean().item()
+        if losses:
+            for key, value in torch.stack(losses).items():
+                if key.startswith("loss_") or key in ("alpha", "bc_filter_fraction", "bc_mse"):
+                    metrics[f"train/{key}"] = value.float().mean().item()
+        if counters["frames"] - last_eval_frames >= cfg.eval.every_frames:
+            last_eval_frames = counters["frames"]
+            with timeit("eval"):
+                metrics.update({f"eval/{k}": v for k, v in run_evaluation().items()})
+            pbar.set_postfix(success=f"{metrics['eval/success_rate']:.3f}", demos=len(buffers.demo_buffer))
+        metrics.update({f"time/{k}": v for k, v in timeit.todict(percall=False).items()})
+        utils.log_metrics(logger, metrics, counters["frames"])
+        pbar.update(batch.numel())
+        if counters["iterations"] % cfg.checkpoint.every_iters == 0:
+            checkpoint()
+        if cfg.stop_at_success is not None and history and history[-1]["success_rate"] >= cfg.stop_at_success:
+            break
+        if cfg.max_train_wall_s and counters["train_wall_s"] >= cfg.max_train_wall_s:
+            break
+        tick = time.perf_counter()
+    collector.shutdown()
+    pbar.close()
+
+    final, rollout = run_evaluation(return_rollout=True)
+    checkpoint()
+    summary = utils.summarize(cfg, counters, final, len(buffers.demo_buffer))
+    utils.plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
+    if isinstance(model, UR5eReach):  # the pictures draw a UR5e
+        save_rollout_png(model, rollout[:4], run_dir / "test_rollouts.png")
+    utils.write_results(run_dir, summary, history)
+    return summary
 
 
 @hydra.main(version_base="1.3", config_path="config", config_name="sac_silp")

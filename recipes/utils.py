@@ -1,4 +1,9 @@
-"""Builders shared by every training recipe (TorchRL recipe style: construction here, the loop in one place)."""
+"""Builders shared by every training recipe (TorchRL recipe style: construction here, the loop in the script).
+
+Each ``make_*`` returns stock TorchRL / torchrl_silp objects; the method itself
+(task models, transforms, planner, buffers, loss, exploration, networks,
+episode assembly, actor averaging) lives in the package.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import OmegaConf
-from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModule, TensorDictSequential
 from tensordict.nn.distributions import NormalParamExtractor
 from torch import nn, optim
@@ -22,18 +26,12 @@ from torchrl.modules import MLP, AdditiveGaussianModule, ProbabilisticActor, Tan
 from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
-from torchrl_silp import UR5eReachEnv
-from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay
-from torchrl_silp.objectives import SILPLoss
+from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
+from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, transition_keys
+from torchrl_silp.models import make_model as _make_model
+from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ
 
-ALGORITHMS = ("sac", "ddpg", "td3")
 EXPLORATION_MODES = ("gp", "random", "none")
-LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "", None)  # "" or null: no logger
-
-
-def check_choice(name: str, value, allowed) -> None:
-    if value not in allowed:
-        raise ValueError(f"{name} must be one of {tuple(allowed)}, got {value!r}")
 
 
 def check_device(value) -> None:
@@ -50,6 +48,7 @@ def start_run(cfg) -> tuple[torch.device, Path]:
     config there as ``config.yaml``: what rebuilds a run's networks from its
     checkpoint (``load_trained_networks``) and what a report cites.
     """
+    check_device(cfg.device)
     device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -63,78 +62,49 @@ def start_run(cfg) -> tuple[torch.device, Path]:
 
 
 # ---------------------------------------------------------------- environment
-def make_env(cfg, device, seed: int) -> TransformedEnv:
-    """The batched training env with the transforms the loop reads (is_init, episode_reward)."""
-    base = UR5eReachEnv(
-        num_envs=cfg.env.num_envs,
-        seed=seed,
-        max_steps=cfg.env.max_steps,
-        collision_type=cfg.env.collision_type,
-        workspace_exit=cfg.env.workspace_exit,
-        task_branch=cfg.env.task_branch,
-        device=device,
-    )
-    return TransformedEnv(base, Compose(InitTracker(), RewardSum()))
+def make_model(cfg, device):
+    """The task model named by ``cfg.env.name``, with ``cfg.env.model`` as keyword arguments."""
+    return _make_model(cfg.env.name, device=device, **OmegaConf.to_container(cfg.env.model, resolve=True))
+
+
+def observation_keys(cfg) -> list[str]:
+    """What the networks read: the flat observation, and the goal offset with ``network.goal_relative``."""
+    return ["observation", "goal_offset"] if cfg.network.goal_relative else ["observation"]
+
+
+def make_observation_transform(cfg, model) -> Compose:
+    """The transforms that build the networks' inputs from a named state (the env's, the planner's, the loss's)."""
+    transforms = [GoalRelative(model)] if cfg.network.goal_relative else []
+    return Compose(*transforms, model.observation_transform())
+
+
+def make_env(cfg, model, device, seed: int, primers=()) -> TransformedEnv:
+    """The batched training env: the model's ReachEnv, collision handling, the networks' inputs,
+    ``is_init`` and ``episode_reward`` (read by the loop and the exploration module), and ``primers``."""
+    base = ReachEnv(model, num_envs=cfg.env.num_envs, seed=seed, max_steps=cfg.env.max_steps, device=device)
+    transforms = [CollisionHandling(cfg.env.collision_type), *make_observation_transform(cfg, model), InitTracker(), RewardSum()]
+    return TransformedEnv(base, Compose(*transforms, *primers))
 
 
 # --------------------------------------------------------------------- models
-class GoalRelativeMLP(nn.Module):
-    """An MLP that also sees the TCP-to-goal vector of the observation.
-
-    The 15-D observation holds the TCP (3:6) and the goal (12:15) separately;
-    success is decided at the 5 cm scale of their difference, which an MLP
-    must otherwise learn to subtract. The difference is appended to the
-    inputs (observation first, then any further input such as the action).
-    """
-
-    def __init__(self, mlp: nn.Module):
-        super().__init__()
-        self.mlp = mlp
-
-    def forward(self, observation: torch.Tensor, *others: torch.Tensor) -> torch.Tensor:
-        to_goal = observation[..., 12:15] - observation[..., 3:6]
-        return self.mlp(observation, to_goal, *others)
-
-
-class NextTCPFeatureQ(nn.Module):
-    """A Q-network that also sees where the action takes the TCP, through the env's kinematic model.
-
-    Success is a step in the *next* TCP's distance to the goal (5 cm), so a
-    Q-network on ``(s, a)`` must learn the arm's kinematics to place that step;
-    near the goal it blurs it, and the policy comes to rest just outside the
-    5 cm ball. The env's transition ``f_s`` (the model SILP+ already uses for
-    its reward filter) gives the next TCP exactly: its vector to the goal is
-    appended to the inputs. The model is differentiable in the action, so the
-    actor's gradient flows through it.
-    """
-
-    def __init__(self, inner: nn.Module, env: UR5eReachEnv):
-        super().__init__()
-        self.inner = inner
-        # a plain attribute, not a submodule: the env's tensors are no parameters of the critic
-        self.__dict__["model"] = env
-
-    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        next_tcp = self.model.transition(observation, action)[..., 3:6]
-        return self.inner(observation, action, observation[..., 12:15] - next_tcp)
-
-
 def _mlp(cfg, out_features: int, device) -> nn.Module:
-    mlp = MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=nn.ReLU, device=device)
-    return GoalRelativeMLP(mlp) if cfg.network.goal_relative else mlp
+    return MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=nn.ReLU, device=device)
 
 
-def make_actor_critic(cfg, env, device):
+def make_actor_critic(cfg, model, env, device):
     """Actor (stochastic TanhNormal for SAC, deterministic tanh for DDPG/TD3) and Q-network."""
-    check_choice("algorithm", cfg.algorithm, ALGORITHMS)
     spec = env.action_spec_unbatched.to(device)
+    keys = observation_keys(cfg)
     if cfg.algorithm == "sac":
-        net = nn.Sequential(
-            _mlp(cfg, 2 * spec.shape[-1], device),
-            NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
+        net = TensorDictSequential(
+            TensorDictModule(_mlp(cfg, 2 * spec.shape[-1], device), in_keys=keys, out_keys=["param"]),
+            TensorDictModule(
+                NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
+                in_keys=["param"], out_keys=["loc", "scale"],
+            ),
         )
         actor = ProbabilisticActor(
-            TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+            net,
             in_keys=["loc", "scale"],
             spec=spec,
             distribution_class=TanhNormal,
@@ -142,15 +112,21 @@ def make_actor_critic(cfg, env, device):
             default_interaction_type=InteractionType.RANDOM,
             return_log_prob=False,
         )
-    else:
+    elif cfg.algorithm in ("ddpg", "td3"):
         actor = TensorDictSequential(
-            TensorDictModule(_mlp(cfg, spec.shape[-1], device), in_keys=["observation"], out_keys=["param"]),
+            TensorDictModule(_mlp(cfg, spec.shape[-1], device), in_keys=keys, out_keys=["param"]),
             TanhModule(in_keys=["param"], out_keys=["action"], spec=spec),
         )
-    q_net = _mlp(cfg, 1, device)
-    if cfg.network.get("next_tcp_feature", False):
-        q_net = NextTCPFeatureQ(q_net, env.base_env)
-    critic = ValueOperator(q_net, in_keys=["observation", "action"])
+    else:
+        raise ValueError(f"algorithm must be one of ('sac', 'ddpg', 'td3'), got {cfg.algorithm!r}")
+    if cfg.network.next_tcp_feature:
+        if cfg.algorithm == "td3":
+            raise ValueError("network.next_tcp_feature needs algorithm sac or ddpg: TorchRL's TD3Loss gives the "
+                             "critic only the actor's inputs, not the named state the model steps from")
+        q_net = NextGoalOffsetQ(_mlp(cfg, 1, device), model, observation_keys=keys)
+        critic = ValueOperator(q_net, in_keys=q_net.in_keys)
+    else:
+        critic = ValueOperator(_mlp(cfg, 1, device), in_keys=[*keys, "action"])
     with torch.no_grad():
         td = env.fake_tensordict().to(device)
         actor(td)
@@ -158,160 +134,96 @@ def make_actor_critic(cfg, env, device):
     return actor, critic
 
 
-def make_exploration_policy(cfg, actor, env, device):
+def make_exploration(cfg, model, device) -> GPGuidedExploration | None:
+    """The collision-recovery module of ``exploration.mode`` (its state primer goes into the env), or None."""
+    if cfg.exploration.mode not in EXPLORATION_MODES:
+        raise ValueError(f"exploration.mode must be one of {EXPLORATION_MODES}, got {cfg.exploration.mode!r}")
+    if cfg.exploration.mode == "none":
+        return None
+    return GPGuidedExploration(
+        model,
+        mode=cfg.exploration.mode,
+        num_candidates=cfg.exploration.n_candidates,
+        history_size=cfg.env.max_steps + 1,
+        mask_colliding_candidates=cfg.exploration.mask_colliding_candidates,
+    ).to(device)
+
+
+def make_policy(cfg, actor, exploration, env, device):
     """The collector's policy: the actor, DDPG/TD3 Gaussian noise, then collision-recovery exploration."""
-    check_choice("exploration.mode", cfg.exploration.mode, EXPLORATION_MODES)
     modules = [actor]
     if cfg.algorithm != "sac":
         modules.append(
             AdditiveGaussianModule(
-                spec=env.action_spec_unbatched.to(device),
-                sigma_init=cfg.exploration.sigma,
-                sigma_end=cfg.exploration.sigma,
-                annealing_num_steps=1,
-                device=device,
+                spec=env.action_spec_unbatched.to(device), sigma_init=cfg.exploration.sigma,
+                sigma_end=cfg.exploration.sigma, annealing_num_steps=1, device=device,
             )
         )
-    if cfg.exploration.mode != "none":
-        from torchrl_silp.modules import GPGuidedExploration
-
-        modules.append(
-            GPGuidedExploration(
-                env.base_env,
-                mode=cfg.exploration.mode,
-                num_candidates=cfg.exploration.n_candidates,
-                history_size=cfg.env.max_steps + 1,
-            ).to(device)
-        )
+    if exploration is not None:
+        modules.append(exploration)
     return TensorDictSequential(*modules) if len(modules) > 1 else actor
 
 
-def make_collector(cfg, env, policy, total_frames: int, device) -> Collector:
+def make_collector(cfg, env, policy, total_frames: int, init_random_frames: int, device) -> Collector:
     return Collector(
-        env,
-        policy,
-        frames_per_batch=cfg.collector.frames_per_batch,
-        total_frames=total_frames,
-        init_random_frames=cfg.collector.init_random_frames,
-        device=device,
+        env, policy, frames_per_batch=cfg.collector.frames_per_batch, total_frames=total_frames,
+        init_random_frames=init_random_frames, device=device,
     )
 
 
 # ------------------------------------------------------------------- buffers
-def make_buffers(cfg, env, device) -> MixedReplay:
+def make_buffers(cfg, model, device) -> MixedReplay:
     planner = {
         "d": cfg.planner.d,
         "n_pairs": cfg.planner.n_pairs,
         "step_size": cfg.planner.step_size,
         "method": cfg.planner.method,
-        "goal_node": bool(cfg.planner.goal_node),
+        "goal_node": cfg.planner.goal_node,
     }
-    demos = DemoReplayBuffer(env.base_env, capacity=cfg.replay_buffer.demo_size, device=device, planner_kwargs=planner)
+    keys = observation_keys(cfg)
+    demos = DemoReplayBuffer(
+        model, capacity=cfg.replay_buffer.demo_size, device=device, planner_kwargs=planner,
+        observation_transform=make_observation_transform(cfg, model), observation_keys=keys,
+    )
     interaction = None
-    if cfg.replay_buffer.get("her", False):
+    if cfg.replay_buffer.her:
         # the *-HER baselines: TorchRL's hindsight relabelling on the interaction data
         interaction = GoalRelabelingReplayBuffer(
-            env.base_env,
-            her_ratio=cfg.replay_buffer.her_ratio,
-            strategy=cfg.replay_buffer.her_strategy,
-            capacity=cfg.replay_buffer.size,
-            device=device,
+            model, her_ratio=cfg.replay_buffer.her_ratio, strategy=cfg.replay_buffer.her_strategy,
+            capacity=cfg.replay_buffer.size, device=device,
+            observation_transform=make_observation_transform(cfg, model),
+            collision_ends_episode=cfg.env.collision_type == 0,
         )
     return MixedReplay(
-        demos,
-        interaction,
-        interaction_capacity=cfg.replay_buffer.size,
+        demos, interaction, interaction_capacity=cfg.replay_buffer.size,
         demo_fraction=cfg.replay_buffer.demo_fraction if cfg.silp.demos else 0.0,
-        batch_size=cfg.optim.batch_size,
-        device=device,
+        batch_size=cfg.optim.batch_size, keys=transition_keys(model, keys), device=device,
     )
 
 
-class EpisodeAssembler:
-    """Joins the pieces of episodes that span collector batches, by ``("collector", "traj_ids")``.
-
-    ``push(batch)`` returns the transitions of every episode that finished in
-    this batch (whole episodes, in time order) and keeps the unfinished tails
-    for the next call, so the planner only ever sees complete episodes.
-    """
-
-    def __init__(self):
-        self.pending: TensorDictBase | None = None
-
-    def push(self, batch: TensorDictBase) -> TensorDictBase | None:
-        flat = batch.reshape(-1)
-        if self.pending is not None and self.pending.batch_size.numel():
-            flat = torch.cat([self.pending, flat])
-        ids = flat["collector", "traj_ids"].reshape(-1)
-        done = flat["next", "done"].reshape(-1)
-        finished = torch.isin(ids, ids[done])
-        self.pending = flat[~finished]
-        if not finished.any():
-            return None
-        out = flat[finished]
-        # stable sort by trajectory keeps each episode's steps in time order
-        order = torch.sort(out["collector", "traj_ids"].reshape(-1), stable=True).indices
-        return out[order]
-
-    def flush(self) -> TensorDictBase | None:
-        out, self.pending = self.pending, None
-        return out if out is not None and out.batch_size.numel() else None
-
-
-def cut_episodes(pieces: TensorDictBase) -> TensorDictBase:
-    """Unfinished episodes (what ``EpisodeAssembler.flush`` returns) as truncated whole ones.
-
-    Each trajectory's steps are made contiguous and in time order and its last
-    step is flagged truncated and done: what a buffer that reads episode
-    boundaries from ``("next", "done")`` (hindsight relabelling) needs.
-    """
-    ids = pieces["collector", "traj_ids"].reshape(-1)
-    order = torch.sort(ids, stable=True).indices
-    out = pieces[order].clone()
-    ids = ids[order]
-    last = torch.ones_like(ids, dtype=torch.bool)
-    last[:-1] = ids[1:] != ids[:-1]
-    last = last.view(-1, 1)
-    out["next", "truncated"] = out["next", "truncated"] | last
-    out["next", "done"] = out["next", "done"] | last
-    return out
-
-
 # ---------------------------------------------------------------------- loss
-def make_loss(cfg, actor, critic, env):
+def make_loss(cfg, actor, critic, model, env):
     """The RL loss (SAC / DDPG / TD3), wrapped by SILPLoss when the BC term is on, and its target updater."""
     if cfg.algorithm == "sac":
         rl = SACLoss(
-            actor_network=actor,
-            qvalue_network=critic,
-            num_qvalue_nets=2,
-            loss_function="l2",
-            delay_actor=False,
-            delay_qvalue=True,
-            alpha_init=cfg.optim.alpha_init,
-            min_alpha=cfg.optim.get("min_alpha", None),
-            target_entropy=cfg.optim.get("target_entropy", "auto"),
+            actor_network=actor, qvalue_network=critic, num_qvalue_nets=2, loss_function="l2",
+            delay_actor=False, delay_qvalue=True, alpha_init=cfg.optim.alpha_init, min_alpha=cfg.optim.min_alpha,
+            target_entropy=cfg.optim.target_entropy,
         )
+        # SACLoss registers its target-entropy buffer on first use: create it now, so a
+        # fresh loss and a checkpointed one have the same state_dict keys on resume
+        _ = rl.target_entropy
     elif cfg.algorithm == "ddpg":
         rl = DDPGLoss(actor_network=actor, value_network=critic, delay_actor=True, delay_value=True, loss_function="l2")
     else:
         rl = TD3Loss(actor_network=actor, qvalue_network=critic, action_spec=env.action_spec_unbatched, loss_function="l2")
     rl.make_value_estimator(gamma=cfg.optim.gamma)
-    if cfg.algorithm == "sac":
-        # SACLoss registers its target-entropy buffer on first use: create it now, so a
-        # fresh loss and a checkpointed one have the same state_dict keys on resume
-        _ = rl.target_entropy
     updater = SoftUpdate(rl, tau=cfg.optim.tau)
     if not cfg.silp.bc:
         return rl, updater
     loss = SILPLoss(
-        rl,
-        env.base_env,
-        filter=cfg.silp.filter,
-        lambda1=cfg.silp.lambda1,
-        lambda2=cfg.silp.lambda2,
-        k=cfg.silp.k,
-        gamma=cfg.optim.gamma,
+        rl, model, filter=cfg.silp.filter, lambda1=cfg.silp.lambda1, lambda2=cfg.silp.lambda2, k=cfg.silp.k,
+        gamma=cfg.optim.gamma, observation_transform=make_observation_transform(cfg, model),
     )
     return loss, updater
 
@@ -323,20 +235,18 @@ def rl_loss_of(loss):
 def make_optimizers(cfg, loss) -> dict[str, optim.Optimizer]:
     rl = rl_loss_of(loss)
     actor_params = list(rl.actor_network_params.flatten_keys().values())
-    critic_params = (
-        rl.qvalue_network_params if hasattr(rl, "qvalue_network_params") else rl.value_network_params
-    )
+    critic_params = rl.qvalue_network_params if hasattr(rl, "qvalue_network_params") else rl.value_network_params
     opts = {
         "actor": optim.Adam(actor_params, lr=cfg.optim.lr),
         "critic": optim.Adam(list(critic_params.flatten_keys().values()), lr=cfg.optim.lr),
     }
-    if hasattr(rl, "log_alpha") and cfg.algorithm == "sac":
+    if cfg.algorithm == "sac":
         opts["alpha"] = optim.Adam([rl.log_alpha], lr=cfg.optim.lr)
     return opts
 
 
 # ------------------------------------------------------------- checkpoints
-def save_checkpoint(path: Path, state: dict, buffers: MixedReplay, assembler: EpisodeAssembler) -> None:
+def save_checkpoint(path: Path, state: dict, buffers: MixedReplay) -> None:
     """Write everything a resumed run needs; atomically (a killed save leaves the previous one)."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
@@ -345,8 +255,6 @@ def save_checkpoint(path: Path, state: dict, buffers: MixedReplay, assembler: Ep
     tmp.mkdir(parents=True)
     torch.save(state, tmp / "state.pt")
     buffers.dumps(tmp / "buffers")
-    if assembler.pending is not None and assembler.pending.batch_size.numel():
-        torch.save(assembler.pending, tmp / "pending_episodes.pt")
     old = path.with_name(path.name + ".old")
     if path.exists():
         os.replace(path, old)
@@ -364,16 +272,12 @@ def _checkpoint_dir(path: Path) -> Path | None:
     return None
 
 
-def load_checkpoint(path: Path, buffers: MixedReplay, assembler: EpisodeAssembler) -> dict:
+def load_checkpoint(path: Path, buffers: MixedReplay) -> dict:
     found = _checkpoint_dir(path)
     if found is None:
         raise FileNotFoundError(f"no checkpoint under {path}")
-    path = found
-    state = torch.load(path / "state.pt", weights_only=False)
-    buffers.loads(path / "buffers")
-    pending = path / "pending_episodes.pt"
-    if pending.exists():
-        assembler.pending = torch.load(pending, weights_only=False)
+    state = torch.load(found / "state.pt", weights_only=False)
+    buffers.loads(found / "buffers")
     return state
 
 
@@ -381,7 +285,7 @@ def checkpoint_exists(path: Path) -> bool:
     return _checkpoint_dir(path) is not None
 
 
-def load_trained_networks(cfg, env, path: Path, device) -> tuple:
+def load_trained_networks(cfg, model, env, path: Path, device) -> tuple:
     """A run's networks, rebuilt from its config and loaded from its checkpoint: ``(actor, loss, state)``.
 
     ``actor`` holds the parameters the run evaluated: the average of the
@@ -391,12 +295,13 @@ def load_trained_networks(cfg, env, path: Path, device) -> tuple:
     found = _checkpoint_dir(path)
     if found is None:
         raise FileNotFoundError(f"no checkpoint under {path}")
-    actor, critic = make_actor_critic(cfg, env, device)
-    loss, _ = make_loss(cfg, actor, critic, env)
+    actor, critic = make_actor_critic(cfg, model, env, device)
+    loss, _ = make_loss(cfg, actor, critic, model, env)
     state = torch.load(found / "state.pt", map_location=device, weights_only=False)
     loss.load_state_dict(state["loss"])
     if state.get("averaged_actor") is not None:
-        state["averaged_actor"].to(device).to_module(actor)
+        averaged = {k[len("module."):]: v for k, v in state["averaged_actor"].items() if k.startswith("module.")}
+        actor.load_state_dict(averaged)
     return actor, loss, state
 
 
@@ -430,6 +335,24 @@ def plot_learning_curve(history: list[dict], path: Path, label: str) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def summarize(cfg, counters: dict, final: dict, demos_stored: int) -> dict:
+    """The run's ``summary.json``: the method, the final test evaluation and the counters."""
+    return {
+        "method": cfg.logger.exp_name, "env": cfg.env.name, "algorithm": cfg.algorithm, "silp_bc": cfg.silp.bc,
+        "silp_demos": cfg.silp.demos, "her": cfg.replay_buffer.her, "exploration": cfg.exploration.mode,
+        "seed": cfg.seed, "success_rate": final["success_rate"],
+        "online_success_rate": final.get("online_success_rate", final["success_rate"]),
+        "evaluated_actor": "online" if cfg.eval.actor_average_decay is None
+        else f"average (decay {cfg.eval.actor_average_decay})",
+        "test_collision_rate": final["collision_rate"], "collisions_during_training": counters["collisions"],
+        "episodes": counters["episodes"], "frames": counters["frames"], "updates": counters["updates"],
+        "train_wall_s": counters["train_wall_s"], "planning_s": counters["planning_s"],
+        "planning_share": counters["planning_s"] / max(counters["train_wall_s"], 1e-9),
+        "time_to_095_s": counters["time_to_095_s"], "rollout_time_per_episode_s": final["time_per_rollout_s"],
+        "demos_stored": demos_stored,
+    }
 
 
 def write_json(path: Path, payload: dict) -> None:

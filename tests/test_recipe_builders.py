@@ -1,55 +1,44 @@
-"""The recipe builders' networks, against independent computations."""
+"""The recipes' configs and builders, in-process: typed configs, every Table 1 method, errors naming the field."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
-import numpy as np
+import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from tensordict import TensorDict
-
-from test_kinematics import dh_tcp
-from torchrl_silp import UR5eReachEnv
+from omegaconf.errors import ConfigKeyError, ValidationError
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
-from utils import NextTCPFeatureQ, make_actor_critic, make_env  # noqa: E402
+import sac_silp  # noqa: E402  (registers the structured schema)
+import utils  # noqa: E402
+
+from torchrl_silp.modules import NextGoalOffsetQ  # noqa: E402
 
 
-def test_next_tcp_feature_is_the_model_next_tcp_to_goal():
+def config(*overrides: str):
     with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        cfg = compose(config_name="sac_silp", overrides=["env.num_envs=4", "network.next_tcp_feature=true"])
-    env = make_env(cfg, torch.device("cpu"), seed=0)
-    _, critic = make_actor_critic(cfg, env, torch.device("cpu"))
-    q_net = critic.module
-    assert isinstance(q_net, NextTCPFeatureQ)
-    # the env is the critic's model, not part of its parameters or state
-    assert all(name.startswith("inner.") for name in q_net.state_dict())
+        return compose(config_name="sac_silp", overrides=list(overrides))
 
-    tasks = UR5eReachEnv(num_envs=64, seed=3).reset()
-    obs = tasks["observation"]
-    g = torch.Generator().manual_seed(0)
-    action = (torch.rand(64, 3, generator=g) * 2.4 - 1.2).requires_grad_()  # some beyond [-1, 1]: clipped
-    seen = {}
-    handle = q_net.inner.register_forward_pre_hook(lambda module, args: seen.setdefault("args", args))
-    value = critic(TensorDict(observation=obs, action=action, batch_size=[64]))["state_action_value"]
-    handle.remove()
 
-    # independent: next joints by the action scale, TCP by the closed-form DH of the wrist-following arm
-    q_next = obs[:, :3].double() + action.detach().double().clamp(-1, 1) * UR5eReachEnv.ACTION_SCALE
-    tcp_next, _ = dh_tcp(env.base_env.robot.full_joints(q_next).numpy())
-    expected = obs[:, 12:15].double().numpy() - tcp_next
-    feature = seen["args"][2]
-    np.testing.assert_allclose(feature.detach().numpy(), expected, atol=2e-5)
-
-    # the actor's gradient reaches the action through the model as well as directly
-    grad_feature, = torch.autograd.grad(feature.pow(2).sum(), action, retain_graph=True)
-    inside = action.detach().abs() < 1
-    assert (grad_feature[inside] != 0).any() and (grad_feature[~inside] == 0).all()
-    value.sum().backward()
-    assert action.grad is not None and torch.isfinite(action.grad).all()
+def test_critic_reads_the_goal_offset_and_the_model_next_goal():
+    cfg = config("env.num_envs=4")
+    model = utils.make_model(cfg, torch.device("cpu"))
+    env = utils.make_env(cfg, model, torch.device("cpu"), seed=0)
+    actor, critic = utils.make_actor_critic(cfg, model, env, torch.device("cpu"))
+    assert isinstance(critic.module, NextGoalOffsetQ)
+    assert critic.in_keys[:3] == ["observation", "goal_offset", "action"]
+    assert set(model.state_keys) <= set(critic.in_keys)
+    # the env writes every key the networks read
+    td = env.reset()
+    assert all(key in td.keys() for key in actor.in_keys if key != "action")
+    # the model is no parameter of the critic
+    assert all(name.startswith("mlp.") for name in critic.module.state_dict())
+    plain = config("env.num_envs=4", "network.next_tcp_feature=false", "network.goal_relative=false")
+    _, critic = utils.make_actor_critic(plain, model, utils.make_env(plain, model, torch.device("cpu"), 0), "cpu")
+    assert critic.in_keys == ["observation", "action"]
 
 
 METHODS = sorted(p.stem for p in (RECIPES / "config" / "method").glob("*.yaml"))
@@ -57,8 +46,6 @@ METHODS = sorted(p.stem for p in (RECIPES / "config" / "method").glob("*.yaml"))
 
 def test_every_table1_learning_method_is_a_config():
     # the paper's Table 1 rows that train with the recipe loop, each a `method=` option
-    from loop import validate
-
     expected = {
         # method: (algorithm, demos, bc, filter, exploration, her, demo_fraction)
         "sac": ("sac", False, False, "reward", "random", False, 0.25),
@@ -70,10 +57,51 @@ def test_every_table1_learning_method_is_a_config():
     expected.update({"ddpg" + name[3:]: ("ddpg",) + flags[1:] for name, flags in expected.items() if name != "sac_silp"})
     assert sorted(expected) == METHODS
     for method, flags in expected.items():
-        with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-            cfg = compose(config_name="sac_silp", overrides=[f"method={method}"])
-        validate(cfg)
+        cfg = config(f"method={method}")
         got = (cfg.algorithm, cfg.silp.demos, cfg.silp.bc, cfg.silp.filter, cfg.exploration.mode,
                cfg.replay_buffer.her, cfg.replay_buffer.demo_fraction)
         assert got == flags, method
         assert cfg.logger.exp_name == method
+
+
+@pytest.mark.parametrize("override", ["env.num_envs=abc", "seed=abc", "optim.lr=fast", "silp.bc=maybe"])
+def test_wrong_types_are_rejected_by_the_schema(override):
+    with pytest.raises(ValidationError) as err:
+        config(override)
+    assert override.split("=")[0].split(".")[-1] in str(err.value)
+
+
+def test_unknown_fields_are_rejected_by_the_schema():
+    with pytest.raises(ConfigKeyError):
+        config("optim.learning_rate=0.1")
+
+
+TINY = ["env.num_envs=4", "collector.frames_per_batch=100", "eval.n_tasks=8", "progress=false", "logger.backend="]
+
+
+@pytest.mark.parametrize(
+    "override,name",
+    [
+        ("env.num_envs=0", "num_envs"),
+        ("algorithm=ppo", "algorithm"),
+        ("silp.filter=best", "filter"),
+        ("exploration.mode=curious", "exploration.mode"),
+        ("collector.frames_per_batch=101", "collector.frames_per_batch"),
+        ("env.collision_type=3", "collision_type"),
+        ("env.name=mars_rover", "name"),
+        ("device=tpu", "device"),
+        ("eval.actor_average_decay=1.5", "decay"),
+        ("replay_buffer.demo_fraction=half", "demo_fraction"),
+        ("replay_buffer.her_strategy=past", "strategy"),
+        ("env.model.task_branch=left", "task_branch"),
+    ],
+)
+def test_bad_values_are_rejected_by_the_library_naming_the_parameter(tmp_path, override, name):
+    overrides = [*TINY, f"run_dir={tmp_path / 'run'}", override]
+    if "her_strategy" in override:
+        overrides.append("replay_buffer.her=true")
+    cfg = config(*overrides)
+    with pytest.raises((ValueError, TypeError)) as err:
+        sac_silp.train(cfg)
+    assert name in str(err.value)
+    assert not (tmp_path / "run" / "checkpoint").exists()

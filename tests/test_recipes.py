@@ -1,4 +1,6 @@
-"""The training recipes end to end, with tiny overrides: smoke runs, bad configs, resume after a kill."""
+"""The training recipes end to end, with tiny overrides: smoke runs, resume after a kill, the averaged actor.
+
+Config validation runs in-process: tests/test_recipe_builders.py."""
 
 from __future__ import annotations
 
@@ -32,6 +34,8 @@ TINY = [
     "progress=false",
     "threads=1",
 ]
+# the Panda reach task through the same recipe, no code of its own
+PANDA = ["env=panda_reach", "env.num_envs=4"]
 
 
 def run_recipe(script: str, run_dir: Path, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -120,7 +124,7 @@ def test_table1_baselines_train(tmp_path, method):
     interaction = load_buffer(ckpt / "buffers" / "interaction")
     if method == "sac_her":
         # hindsight relabelling stores whole episodes only: the unfinished ones wait in the checkpoint
-        pending = torch.load(ckpt / "pending_episodes.pt", weights_only=False) if (ckpt / "pending_episodes.pt").exists() else None
+        pending = torch.load(ckpt / "", weights_only=False) if (ckpt / "").exists() else None
         n_pending = 0 if pending is None else pending.batch_size.numel()
         assert len(interaction) + n_pending == 300
         assert bool(interaction.storage[len(interaction) - 1]["next", "done"])
@@ -128,30 +132,6 @@ def test_table1_baselines_train(tmp_path, method):
         assert 50 <= out["updates"] <= 75
     else:
         assert len(interaction) == 300 and out["updates"] == 75
-
-
-@pytest.mark.parametrize(
-    "override,name",
-    [
-        ("env.num_envs=0", "env.num_envs"),
-        ("algorithm=ppo", "algorithm"),
-        ("silp.filter=best", "silp.filter"),
-        ("exploration.mode=curious", "exploration.mode"),
-        ("collector.frames_per_batch=101", "collector.frames_per_batch"),
-        ("env.collision_type=3", "env.collision_type"),
-        ("device=tpu", "device"),
-        ("optim.target_entropy=high", "optim.target_entropy"),
-        ("eval.actor_average_decay=1.5", "eval.actor_average_decay"),
-        ("replay_buffer.demo_fraction=half", "replay_buffer.demo_fraction"),
-        ("replay_buffer.her_strategy=past", "replay_buffer.her_strategy"),
-    ],
-)
-def test_bad_config_is_rejected_before_work(tmp_path, override, name):
-    run_dir = tmp_path / "run"
-    proc = run_recipe("sac_silp.py", run_dir, override, timeout=120)
-    assert proc.returncode != 0
-    assert "ValueError" in proc.stderr and name in proc.stderr
-    assert not (run_dir / "checkpoint").exists()
 
 
 def test_resume_after_kill_continues_without_losing_data(tmp_path):
@@ -205,10 +185,13 @@ def test_resume_after_kill_continues_without_losing_data(tmp_path):
 
 def _actor_tensors(state: dict) -> tuple[torch.Tensor, torch.Tensor]:
     """The averaged actor and the trained actor of a checkpoint, each flattened into one vector."""
-    averaged = state["averaged_actor"].flatten_keys()
     loss = state["loss"]
-    online = [loss[f"rl_loss.actor_network_params.{key}"] for key in averaged.keys()]
-    return torch.cat([v.flatten() for v in averaged.values()]), torch.cat([v.flatten() for v in online])
+    # AveragedModel's state: "n_averaged" and "module.<the actor's state_dict keys>"
+    averaged = {key[len("module."):]: v for key, v in state["averaged_actor"].items() if key.startswith("module.")}
+    params = [key for key in averaged if f"rl_loss.actor_network_params.{key}" in loss]
+    assert params
+    online = [loss[f"rl_loss.actor_network_params.{key}"] for key in params]
+    return torch.cat([averaged[k].flatten() for k in params]), torch.cat([v.flatten() for v in online])
 
 
 def test_averaged_actor_is_evaluated_checkpointed_and_resumed(tmp_path):

@@ -86,8 +86,7 @@ class NextGoalOffsetQ(nn.Module):
         if isinstance(observation_keys, str):
             observation_keys = [observation_keys]
         self.mlp = mlp
-        # a plain attribute, not a submodule: a task model holds no parameters of the critic
-        self.__dict__["model"] = model
+        self.model = model  # a TaskModel is no nn.Module: not registered, not in the state_dict
         self.observation_keys = [unravel_key(k) for k in observation_keys]
         self.action_key = unravel_key(action_key)
         if not self.observation_keys:

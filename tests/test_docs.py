@@ -1,0 +1,32 @@
+"""The documentation's examples run."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import torch
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+
+def test_your_own_task_example_runs_silp_on_a_new_task(capsys):
+    text = (DOCS / "your_own_task.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert len(blocks) == 1
+    scope: dict = {}
+    exec(compile(blocks[0], "docs/your_own_task.md", "exec"), scope)
+    # the planner found demonstrations on the new task and the loss trained on them
+    assert len(scope["buffers"].demo_buffer) > 0
+    out = scope["out"]
+    assert float(out["num_demos"]) > 0 and float(out["bc_mse"]) > 0
+    demos = scope["buffers"].demo_buffer.sample(256)
+    # every stored demonstration step moves by its action and is one the model lets pass
+    model = scope["model"]
+    assert bool((demos["action"].abs() <= 1).all())
+    moved = demos["next", "joint_position"] - demos["joint_position"]
+    assert torch.allclose(moved, demos["action"] * model.action_scale, atol=1e-6)
+    keys = model.state_keys
+    _, collision, _, _ = model.outcome(demos.select(*keys), demos["next"].select(*keys))
+    assert not bool(collision.any())
+    assert "demonstration transitions" in capsys.readouterr().out
