@@ -14,9 +14,6 @@ __all__ = [
     "aabb_bounds",
     "point_box_signed_distance",
     "sphere_box_distance",
-    "spheres_hit_box",
-    "spheres_below_plane",
-    "spheres_overlap",
     "in_box",
     "CollisionReason",
 ]
@@ -68,30 +65,6 @@ def sphere_box_distance(centres: torch.Tensor, radii: torch.Tensor, box: torch.T
         box: ``(..., 6)`` boxes, broadcastable against ``centres``.
     """
     return point_box_signed_distance(centres, box) - radii
-
-
-def spheres_hit_box(centres: torch.Tensor, radii: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
-    """Whether any of ``S`` spheres ``(..., S, 3)`` intersects its batch's box ``(..., 6)``.
-
-    Same predicate as ``sphere_box_distance(...) < 0`` reduced over ``S``, in the
-    squared-distance form (no square root; touching counts as no contact).
-    """
-    lo, hi = aabb_bounds(box)
-    lo, hi = lo.unsqueeze(-2), hi.unsqueeze(-2)
-    gap = torch.maximum(lo - centres, centres - hi).clamp(min=0)
-    return ((gap * gap).sum(-1) < radii * radii).any(-1)
-
-
-def spheres_below_plane(centres: torch.Tensor, radii: torch.Tensor, height: float = 0.0) -> torch.Tensor:
-    """Whether any sphere ``(..., S, 3)`` reaches below the plane ``z = height``."""
-    return (centres[..., 2] - radii < height).any(-1)
-
-
-def spheres_overlap(a: torch.Tensor, ra: torch.Tensor, b: torch.Tensor, rb: torch.Tensor) -> torch.Tensor:
-    """Whether any sphere of set ``a`` ``(..., A, 3)`` overlaps any of set ``b`` ``(..., B, 3)``."""
-    d2 = (a.unsqueeze(-2) - b.unsqueeze(-3)).square().sum(-1)
-    reach = ra.unsqueeze(-1) + rb.unsqueeze(-2)
-    return (d2 < reach * reach).flatten(-2).any(-1)
 
 
 def in_box(points: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:

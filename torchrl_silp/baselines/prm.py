@@ -1,14 +1,18 @@
 """OMPL's PRM as the PRM-0.1 / PRM-1 baselines of the paper's Table 1, and as a demonstration source.
 
 For each task, :class:`PRMPlanner` builds a fresh probabilistic roadmap (the
-obstacle changes from task to task) in the three active joints, with the
-env's collision checker as OMPL's state validity checker and the env's
-subdivision edge check, batched in torch, as its motion validator. It stops at
-its first solution or at the time budget. :class:`PathReplayPolicy` turns the
-planned paths into action-bounded steps, and :func:`evaluate_prm` runs them
-through :func:`~torchrl_silp.eval.evaluate` on the fixed test tasks, as the
-learned policies are evaluated. :func:`collect_prm_demonstrations` keeps the
-transitions of the successful executions on training tasks (BC-PRM).
+scene changes from task to task) in the configuration space of a
+:class:`~torchrl_silp.models.TaskModel`, whatever its ``config_dim``: the
+model's collision test is OMPL's state validity checker, and the model's motion
+check (:meth:`~torchrl_silp.models.TaskModel.segment_collision_free`, the test
+the env judges its steps with) is its motion validator. It stops at its first
+solution or at the time budget. :class:`PathReplayPolicy` turns the planned
+paths into action-bounded steps, and :func:`evaluate_prm` runs them through
+:func:`~torchrl_silp.eval.evaluate` on the fixed test tasks, as the learned
+policies are evaluated. :func:`collect_prm_demonstrations` turns the
+successful executions on training tasks into demonstration transitions
+(BC-PRM), built with the model as :func:`~torchrl_silp.planning.plan_demonstrations`
+builds its own.
 
 OMPL is optional: ``pip install "torchrl_silp[planning]"`` (OMPL >= 1.7; the
 nanobind bindings of 2.x are the ones exercised here).
@@ -23,10 +27,11 @@ import time
 from collections.abc import Sequence
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDict, TensorDictBase
 
-from torchrl_silp.envs.reach import UR5eReachEnv
-from torchrl_silp.eval import DEFAULT_TEST_SEED, episode_outcomes, evaluate
+from torchrl_silp.data.demo_buffer import transition_keys
+from torchrl_silp.eval import DEFAULT_TEST_SEED, evaluate
+from torchrl_silp.models.base import TaskModel, as_model
 
 _has_ompl = importlib.util.find_spec("ompl") is not None
 if _has_ompl:
@@ -42,9 +47,6 @@ __all__ = [
     "collect_prm_demonstrations",
 ]
 
-# keys of a demonstration transition (recipes/bc.py trains on exactly these)
-DEMO_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
-             ("next", "terminated"), "episode")
 # training tasks planned and executed per batch in collect_prm_demonstrations
 _COLLECT_BATCH = 500
 
@@ -116,15 +118,19 @@ if _has_ompl:
 
 
 class PRMPlanner:
-    """OMPL's PRM in the three active joints of a :class:`~torchrl_silp.envs.reach.UR5eReachEnv`.
+    """OMPL's PRM in the configuration space of a :class:`~torchrl_silp.models.TaskModel`.
 
-    The configuration space is a 3-D ``RealVectorStateSpace`` bounded by the
-    robot's joint limits. A configuration is valid when ``env.collides`` says
-    it does not collide; the TCP leaving the workspace counts as a collision
-    (as in the env's default ``workspace_exit="collision"``; with ``"block"``
-    such a path could not be executed either). An edge is valid when
-    ``env.edge_collision_free`` passes it: configurations at most
-    ``edge_step`` apart, checked in one batched torch call.
+    The configuration space is a ``RealVectorStateSpace(model.config_dim)``
+    bounded by the model's joint limits (``model.config_low`` /
+    ``model.config_high``). A configuration is valid when ``model.collides``
+    says it does not collide in the task's scene (every collision reason of
+    the model counts: for :class:`~torchrl_silp.models.UR5eReach` the TCP
+    leaving the workspace too, which the env could not execute under either
+    ``workspace_exit``). An edge is valid when
+    :meth:`~torchrl_silp.models.TaskModel.segment_collision_free` passes it:
+    configurations at most ``edge_step`` apart, each with the model's
+    Lipschitz margin (the test the env judges its steps with), in one batched
+    torch call.
 
     :meth:`plan` builds a fresh roadmap per task and stops at the first
     solution (OMPL's PRM does) or when ``budget_s`` has passed since the call
@@ -137,63 +143,87 @@ class PRMPlanner:
     waypoint, straight to the farthest later one the edge check passes, all
     candidates in one batched call) within what is left of the budget.
 
+    The planner checks on the model's device, with the model's dtype (one
+    configuration at a time: the CPU is faster).
+
     Args:
-        env: the env whose collision checker and joint limits define the problem
-            (its batch size does not matter: only its model functions are used).
+        model: the task model whose collision test and joint limits define the
+            problem (or an env holding one as ``.model``).
         budget_s: planning time per task, seconds (paper: 0.1 and 1).
         seed: seeds OMPL's random generator once per :meth:`plan` call (a seed
             per call drawn from a generator seeded with it), so runs repeat as
             far as a timed, two-threaded planner allows; ``None`` leaves OMPL's
             time-based seed.
         edge_step: largest joint-space gap between the configurations an edge
-            check tests (rad); the env's edge check defaults to 0.02.
+            check tests (rad); ``None``: the model's ``motion_resolution``, the
+            resolution the env's step check uses.
         simplify: shortcut the roadmap path within the budget.
 
     Examples:
         >>> import pytest; _ = pytest.importorskip("ompl")  # the planning extra
-        >>> from torchrl_silp import UR5eReachEnv
+        >>> import torch
+        >>> from torchrl_silp.models import UR5eReach
         >>> from torchrl_silp.baselines import PRMPlanner
-        >>> env = UR5eReachEnv(seed=0)
-        >>> task = env.sample_tasks(8)[6]  # its straight start -> goal segment is free
-        >>> planner = PRMPlanner(env, budget_s=1.0, seed=0)
-        >>> path, wall_s = planner.plan(task["q"], task["goal_q"], task["obstacle"])
-        >>> path.shape, bool((path[0] == task["q"]).all() and (path[-1] == task["goal_q"]).all())
+        >>> model = UR5eReach()
+        >>> task = model.sample_tasks(8, torch.Generator().manual_seed(0))[0]  # a free start -> goal segment
+        >>> planner = PRMPlanner(model, budget_s=1.0, seed=0)
+        >>> start, goal = task["joint_position"], task["goal_joint_position"]
+        >>> path, wall_s = planner.plan(start, goal, task.select(*model.scene_keys))
+        >>> path.shape, bool((path[0] == start).all() and (path[-1] == goal).all())
         (torch.Size([2, 3]), True)
     """
 
     def __init__(
         self,
-        env: UR5eReachEnv,
+        model: TaskModel,
         budget_s: float,
         *,
         seed: int | None = None,
-        edge_step: float = 0.02,
+        edge_step: float | None = None,
         simplify: bool = True,
     ):
         _require_ompl("PRMPlanner")
-        if not isinstance(env, UR5eReachEnv):
-            raise TypeError(f"env must be a torchrl_silp.UR5eReachEnv, got {type(env).__name__}")
-        self.env = env
+        self.model = model = as_model(model)
         self.budget_s = _check_positive("budget_s", budget_s, "seconds")
-        self.edge_step = _check_positive("edge_step", edge_step, "radians")
+        self.edge_step = model.motion_resolution if edge_step is None else _check_positive(
+            "edge_step", edge_step, "radians"
+        )
         self.seed = None if seed is None else _check_int("seed", seed, 0)
         self.simplify = _check_bool("simplify", simplify)
         self._seeds = None if seed is None else torch.Generator().manual_seed(seed)
-        self._low = env.robot.joint_low.detach().cpu().tolist()
-        self._high = env.robot.joint_high.detach().cpu().tolist()
-        self._space = ob.RealVectorStateSpace(3)
-        bounds = ob.RealVectorBounds(3)
-        for j in range(3):
+        self.dim = D = int(model.config_dim)
+        self._low = model.config_low.detach().double().cpu().reshape(D).tolist()
+        self._high = model.config_high.detach().double().cpu().reshape(D).tolist()
+        self._space = ob.RealVectorStateSpace(D)
+        bounds = ob.RealVectorBounds(D)
+        for j in range(D):
             bounds.setLow(j, self._low[j])
             bounds.setHigh(j, self._high[j])
         self._space.setBounds(bounds)
 
-    def _as_vector(self, name: str, value, size: int) -> torch.Tensor:
-        if not isinstance(value, torch.Tensor) or value.shape != (size,):
-            raise ValueError(f"{name} must be a tensor of shape ({size},), got {getattr(value, 'shape', type(value))}")
+    def _as_vector(self, name: str, value) -> torch.Tensor:
+        D = self.dim
+        if not isinstance(value, torch.Tensor) or value.shape != (D,):
+            raise ValueError(f"{name} must be a tensor of shape ({D},), got {getattr(value, 'shape', type(value))}")
         if not torch.isfinite(value).all():
             raise ValueError(f"{name} must be finite, got {value.tolist()}")
-        return value.to(device=self.env.device, dtype=self.env.dtype)
+        return value.to(device=self.model.device, dtype=self.model.dtype)
+
+    def _as_scene(self, scene) -> TensorDictBase:
+        model = self.model
+        if not isinstance(scene, TensorDictBase) or scene.batch_dims != 0:
+            raise ValueError(
+                f"scene must be a TensorDict with batch size [] holding the scene keys {model.scene_keys}, "
+                f"got {type(scene).__name__}" + (f" of batch size {list(scene.batch_size)}" if isinstance(scene, TensorDictBase) else "")
+            )
+        for key, shape in model.scene_shapes.items():
+            value = scene.get(key, None)
+            if not isinstance(value, torch.Tensor) or value.shape != tuple(shape):
+                raise ValueError(f"scene[{key!r}] must be a tensor of shape {tuple(shape)}, got {getattr(value, 'shape', None)}")
+            if value.is_floating_point() and not torch.isfinite(value).all():
+                raise ValueError(f"scene[{key!r}] must be finite, got {value.tolist()}")
+        out = scene.select(*model.scene_keys)
+        return out.apply(lambda x: x.to(device=model.device, dtype=model.dtype) if x.is_floating_point() else x.to(model.device))
 
     def _reseed(self) -> None:
         if self._seeds is None:
@@ -205,41 +235,47 @@ class PRMPlanner:
             ou.RNG.setSeed(seed)
 
     def plan(
-        self, start_q: torch.Tensor, goal_q: torch.Tensor, obstacle: torch.Tensor
+        self, start: torch.Tensor, goal: torch.Tensor, scene: TensorDictBase
     ) -> tuple[torch.Tensor | None, float]:
-        """Plan from ``start_q`` to ``goal_q`` (each ``(3,)``) around ``obstacle`` (``(6,)`` AABB).
+        """Plan from ``start`` to ``goal`` (each ``(config_dim,)``) in ``scene``.
+
+        Args:
+            start, goal: configurations within the model's joint limits.
+            scene: a TensorDict of batch size ``[]`` with the model's scene keys
+                (e.g. ``task.select(*model.scene_keys)``; further keys are ignored).
 
         Returns:
-            ``(path, wall_s)``: the path, a float32 tensor ``(n, 3)`` on the
-            env's device whose first row is ``start_q`` and last ``goal_q``, or
-            ``None`` when no exact solution was found within the budget (or an
-            end collides); and the wall time of the call in seconds.
+            ``(path, wall_s)``: the path, a float32 tensor ``(n, config_dim)``
+            on the model's device whose first row is ``start`` and last
+            ``goal``, or ``None`` when no exact solution was found within the
+            budget (or an end collides); and the wall time of the call in seconds.
         """
         t0 = time.perf_counter()
         deadline = t0 + self.budget_s
-        env, step = self.env, self.edge_step
-        start = self._as_vector("start_q", start_q, 3)
-        goal = self._as_vector("goal_q", goal_q, 3)
-        box = self._as_vector("obstacle", obstacle, 6)
-        for name, q in (("start_q", start), ("goal_q", goal)):
-            outside = [j for j in range(3) if not self._low[j] <= float(q[j]) <= self._high[j]]
+        model, step, D = self.model, self.edge_step, self.dim
+        start = self._as_vector("start", start)
+        goal = self._as_vector("goal", goal)
+        scene = self._as_scene(scene)
+        for name, q in (("start", start), ("goal", goal)):
+            outside = [j for j in range(D) if not self._low[j] <= float(q[j]) <= self._high[j]]
             if outside:
                 raise ValueError(f"{name} is outside the joint limits on joint(s) {outside}: {q.tolist()}")
-        if bool(env.collides(torch.stack([start, goal]), box).any()):
+        if bool(model.collides(torch.stack([start, goal]), scene.expand(2)).any()):
             return None, time.perf_counter() - t0
-        dtype, device = env.dtype, env.device
+        dtype, device = model.dtype, model.device
+        scene1 = scene.expand(1)
 
         def is_valid(state) -> bool:
             if time.perf_counter() > deadline:
                 return False
-            q = torch.tensor((state[0], state[1], state[2]), dtype=dtype, device=device)
-            return not bool(env.collides(q, box))
+            q = torch.tensor([state[j] for j in range(D)], dtype=dtype, device=device)
+            return not bool(model.collides(q, scene))
 
         def motion_free(s1, s2) -> bool:
             if time.perf_counter() > deadline:
                 return False
-            ends = torch.tensor(((s1[0], s1[1], s1[2]), (s2[0], s2[1], s2[2])), dtype=dtype, device=device)
-            return bool(env.edge_collision_free(ends[0], ends[1], box, step_size=step))
+            ends = torch.tensor([[s1[j] for j in range(D)], [s2[j] for j in range(D)]], dtype=dtype, device=device)
+            return bool(model.segment_collision_free(ends[:1], ends[1:], scene1, step))
 
         path = None
         with _ompl_log_level(ou.LogLevel.LOG_WARN):
@@ -251,7 +287,7 @@ class PRMPlanner:
             si.setMotionValidator(validator)
             ends = [self._space.allocState(), self._space.allocState()]
             for state, q in zip(ends, (start, goal)):
-                for j in range(3):
+                for j in range(D):
                     state[j] = float(q[j])
             setup.setStartAndGoalStates(ends[0], ends[1])
             setup.setPlanner(og.PRM(si))
@@ -259,21 +295,23 @@ class PRMPlanner:
             # bool(solve()) is True for an approximate solution too
             if remaining > 0 and setup.solve(remaining) and setup.haveExactSolutionPath():
                 states = setup.getSolutionPath().getStates()
-                path = torch.tensor([[s[0], s[1], s[2]] for s in states], dtype=dtype, device=device)
+                path = torch.tensor([[s[j] for j in range(D)] for s in states], dtype=dtype, device=device)
                 path[0], path[-1] = start, goal
             del setup, si, validator
         if path is not None and self.simplify:
-            path = self._shortcut(path, box, deadline)
+            path = self._shortcut(path, scene, deadline)
         return (None if path is None else path.float()), time.perf_counter() - t0
 
-    def _shortcut(self, path: torch.Tensor, box: torch.Tensor, deadline: float) -> torch.Tensor:
+    def _shortcut(self, path: torch.Tensor, scene: TensorDictBase, deadline: float) -> torch.Tensor:
         keep, i, last = [0], 0, path.shape[0] - 1
         while i < last:
             if time.perf_counter() > deadline:
                 keep.extend(range(i + 1, last + 1))
                 break
             ahead = path[i + 1:]
-            free = self.env.edge_collision_free(path[i].expand_as(ahead), ahead, box, step_size=self.edge_step)
+            free = self.model.segment_collision_free(
+                path[i].expand_as(ahead), ahead, scene.expand(ahead.shape[0]), self.edge_step
+            )
             hits = free.nonzero()
             # the roadmap edge i -> i+1 passed this check already (up to float32 rounding)
             i += 1 + (int(hits[-1]) if hits.numel() else 0)
@@ -281,26 +319,28 @@ class PRMPlanner:
         return path[keep]
 
 
-def path_to_actions(path: torch.Tensor, action_scale: float = UR5eReachEnv.ACTION_SCALE) -> torch.Tensor:
-    """Actions ``(k, 3)`` in ``[-1, 1]`` that move the arm along a joint-space path.
+def path_to_actions(path: torch.Tensor, action_scale: float) -> torch.Tensor:
+    """Actions ``(k, D)`` in ``[-1, 1]`` that move a configuration along a joint-space path ``(n, D)``.
 
     Each segment ``path[i] -> path[i + 1]`` is split into
     ``ceil(max|dq| / action_scale)`` equal steps, so no joint moves more than
-    ``action_scale`` rad per step; the action of a step is its joint motion
-    divided by ``action_scale``. Repeated waypoints give no step.
+    ``action_scale`` rad per step (a task model's ``action_scale``); the action
+    of a step is its joint motion divided by ``action_scale``. Repeated
+    waypoints give no step.
 
     Examples:
         >>> import torch
-        >>> from torchrl_silp import UR5eReachEnv
         >>> path = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.1, 0.0], [0.3, -0.1, 0.05]])
-        >>> actions = path_to_actions(path)
+        >>> actions = path_to_actions(path, 0.125)
         >>> actions.shape  # ceil(0.3 / 0.125) = 3 steps, then 1
         torch.Size([4, 3])
-        >>> torch.allclose(actions.sum(0) * UR5eReachEnv.ACTION_SCALE, path[-1] - path[0])
+        >>> torch.allclose(actions.sum(0) * 0.125, path[-1] - path[0])
         True
     """
-    if not isinstance(path, torch.Tensor) or path.ndim != 2 or path.shape[-1] != 3 or path.shape[0] < 1:
-        raise ValueError(f"path must be a tensor of shape (n, 3) with n >= 1, got {getattr(path, 'shape', type(path))}")
+    if not isinstance(path, torch.Tensor) or path.ndim != 2 or path.shape[-1] < 1 or path.shape[0] < 1:
+        raise ValueError(f"path must be a tensor of shape (n, D) with n, D >= 1, got {getattr(path, 'shape', type(path))}")
+    if not path.is_floating_point() or not bool(torch.isfinite(path).all()):
+        raise ValueError("path must be a finite floating tensor")
     _check_positive("action_scale", action_scale, "radians")
     delta = path[1:] - path[:-1]
     n = torch.ceil(delta.abs().amax(-1) / action_scale).long()
@@ -309,116 +349,123 @@ def path_to_actions(path: torch.Tensor, action_scale: float = UR5eReachEnv.ACTIO
 
 
 class PathReplayPolicy:
-    """Replays one joint-space path per env of a batched :class:`~torchrl_silp.envs.reach.UR5eReachEnv`.
+    """Replays one joint-space path per row of a batched env over a :class:`~torchrl_silp.models.TaskModel`.
 
-    A callable ``td -> td`` writing ``"action"``: at an env's step ``t`` (its
-    step counter) it plays the ``t``-th action of :func:`path_to_actions` of
-    that env's path, and zeros once the path is done, past ``env.max_steps``
-    actions (the episode is truncated there), or for an env without a path
-    (``None``: its plan failed).
+    A callable ``td -> td`` writing ``"action"``: at a row's step ``t`` (its
+    ``"step_count"`` in the TensorDict it is called with, as a
+    :class:`~torchrl_silp.envs.ReachEnv` keeps it) it plays the ``t``-th
+    action of :func:`path_to_actions` of that row's path, and zeros once the
+    path is done or for a row without a path (``None``: its plan failed). The
+    env truncates a path longer than its episode.
 
     Args:
-        env: the env the paths run in, batch ``[B]``.
-        paths: ``B`` paths ``(n_i, 3)`` starting at the configurations of the
-            env's episodes, or ``None``.
+        model: the task model (its ``action_scale`` and ``config_dim``; or an env holding one).
+        paths: one path ``(n_i, config_dim)`` per row of the batch ``[B]`` the policy is
+            called on, starting at that row's configuration, or ``None``.
 
     Attributes:
         steps: long ``[B]``: the actions each path needs (0 without a path).
 
     Examples:
         >>> import torch
-        >>> from torchrl_silp import UR5eReachEnv
-        >>> env = UR5eReachEnv(num_envs=2, seed=0, collision_type=0)
+        >>> from torchrl_silp.envs import ReachEnv
+        >>> from torchrl_silp.models import UR5eReach
+        >>> env = ReachEnv(UR5eReach(), num_envs=2, seed=0)
         >>> td = env.reset()
-        >>> straight = [torch.stack([q, g]) for q, g in zip(td["observation"][:, :3], td["goal_q"])]
-        >>> policy = PathReplayPolicy(env, [straight[0], None])
+        >>> straight = torch.stack([td["joint_position"][0], td["goal_joint_position"][0]])
+        >>> policy = PathReplayPolicy(env.model, [straight, None])
         >>> rollout = env.rollout(env.max_steps, policy, auto_reset=False, tensordict=td)
         >>> bool(rollout["action"][1].eq(0).all()), policy.steps[1].item()
         (True, 0)
     """
 
-    def __init__(self, env: UR5eReachEnv, paths: Sequence[torch.Tensor | None]):
-        if not isinstance(env, UR5eReachEnv):
-            raise TypeError(f"env must be a torchrl_silp.UR5eReachEnv, got {type(env).__name__}")
-        if len(env.batch_size) != 1:
-            raise ValueError(f"env must have a 1-D batch size, got {tuple(env.batch_size)}")
-        n = env.batch_size[0]
-        if len(paths) != n:
-            raise ValueError(f"paths must hold one path (or None) per env: {n}, got {len(paths)}")
-        T = env.max_steps
-        self.env = env
-        # one zero row past the last step: what an env plays once its path is done
-        self._actions = torch.zeros(n, T + 1, 3, dtype=env.dtype, device=env.device)
-        self.steps = torch.zeros(n, dtype=torch.long, device=env.device)
+    def __init__(self, model: TaskModel, paths: Sequence[torch.Tensor | None]):
+        model = as_model(model)
+        if isinstance(paths, torch.Tensor) or not isinstance(paths, Sequence) or len(paths) < 1:
+            raise ValueError(f"paths must be a non-empty sequence of paths (or None), got {type(paths).__name__}")
+        D, n = model.config_dim, len(paths)
+        device, dtype = model.device, model.dtype
+        actions = []
         for b, path in enumerate(paths):
             if path is None:
+                actions.append(None)
                 continue
-            actions = path_to_actions(path.to(device=env.device, dtype=env.dtype))
-            self.steps[b] = actions.shape[0]
-            k = min(T, actions.shape[0])
-            self._actions[b, :k] = actions[:k]
-        self._rows = torch.arange(n, device=env.device)
+            if not isinstance(path, torch.Tensor) or path.ndim != 2 or path.shape[-1] != D:
+                raise ValueError(f"paths[{b}] must be None or a tensor of shape (n, {D}), got {getattr(path, 'shape', type(path))}")
+            actions.append(path_to_actions(path.to(device=device, dtype=dtype), model.action_scale))
+        self.steps = torch.tensor([0 if a is None else a.shape[0] for a in actions], dtype=torch.long, device=device)
+        # one zero row past the longest path: what a row plays once its path is done
+        self._actions = torch.zeros(n, int(self.steps.max()) + 1, D, dtype=dtype, device=device)
+        for b, a in enumerate(actions):
+            if a is not None:
+                self._actions[b, : a.shape[0]] = a
+        self._rows = torch.arange(n, device=device)
+        self.action_dim = D
 
     def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
-        t = self.env.state["step_count"].reshape(-1).clamp(max=self.env.max_steps)
-        return tensordict.set("action", self._actions[self._rows, t])
+        n = self._rows.numel()
+        if tuple(tensordict.batch_size) != (n,):
+            raise ValueError(f"the paths hold one path per row of a batch [{n}], called on a batch {list(tensordict.batch_size)}")
+        count = tensordict.get("step_count", None)
+        if count is None:
+            raise KeyError("PathReplayPolicy reads the step counter \"step_count\" of the TensorDict it is called with")
+        t = count.reshape(n).to(self._actions.device).clamp(0, self._actions.shape[1] - 1)
+        return tensordict.set("action", self._actions[self._rows, t].to(tensordict.device or self._actions.device))
 
 
-def _plan_and_execute(env: UR5eReachEnv, planner: PRMPlanner, n_plan: int, bar) -> tuple[dict, TensorDictBase, dict]:
-    """Plan the first ``n_plan`` tasks of the env's next reset, then run every path through ``evaluate``."""
-    n = env.batch_size[0]
-    # the tasks the env's next reset draws: sample_tasks from a copy of its generator
-    generator = torch.Generator(device=env.device)
-    generator.set_state(env.rng.get_state())
-    tasks = env.sample_tasks(n, generator=generator)
-    paths: list[torch.Tensor | None] = [None] * n
+def _plan_tasks(planner: PRMPlanner, tasks: TensorDictBase, n_plan: int, bar) -> tuple[list, torch.Tensor]:
+    """Plan the first ``n_plan`` tasks; the rest get no path."""
+    model = planner.model
+    paths: list[torch.Tensor | None] = [None] * tasks.batch_size[0]
     times = torch.zeros(n_plan, dtype=torch.float64)
+    scenes = tasks.select(*model.scene_keys)
+    starts, goals = tasks.get(model.config_key), tasks.get(model.goal_config_key)
     for i in range(n_plan):
-        paths[i], times[i] = planner.plan(tasks["q"][i], tasks["goal_q"][i], tasks["obstacle"][i])
+        paths[i], times[i] = planner.plan(starts[i], goals[i], scenes[i])
         if bar is not None:
             bar.update(1)
-    policy = PathReplayPolicy(env, paths)
-    metrics, rollout = evaluate(policy, env=env, return_rollout=True)
-    if not torch.equal(rollout[:, 0]["observation"][:, :3], tasks["q"]):
-        raise RuntimeError("the env's reset drew other tasks than the ones planned")
-    solved = torch.tensor([p is not None for p in paths[:n_plan]], dtype=torch.bool)
-    return metrics, rollout, {"planning_time_s": times, "solved": solved, "path_steps": policy.steps[:n_plan].cpu()}
+    return paths, times
+
+
+def _device(model: TaskModel, device) -> torch.device:
+    device = model.device if device is None else torch.device(device)
+    if model.device != device:
+        model.to(device)  # as ReachEnv(model, device=device) does
+    return device
 
 
 def evaluate_prm(
+    model: TaskModel,
     budget_s: float,
     n_tasks: int = 1000,
     seed: int = DEFAULT_TEST_SEED,
     *,
     ompl_seed: int = 0,
     max_steps: int = 50,
-    workspace_exit: str = "collision",
-    task_branch: str = "front",
     device: torch.device | str | None = None,
     progress: bool = False,
-    edge_step: float = 0.02,
+    edge_step: float | None = None,
     simplify: bool = True,
 ) -> dict:
     """PRM on the fixed test tasks, executed and scored like a learned policy by :func:`~torchrl_silp.eval.evaluate`.
 
-    The test env is the one :func:`~torchrl_silp.eval.evaluate` builds
-    (``collision_type=0``: a collision ends the episode as a failure). Each
-    task is planned in turn by a :class:`PRMPlanner`, then all paths run as
-    one batch through :class:`PathReplayPolicy` (a failed plan: zero
-    actions). A path needing more than ``max_steps`` steps is cut there, as
-    the episode is.
+    The test tasks and env are the ones :func:`~torchrl_silp.eval.evaluate`
+    builds from the model (``collision_type=0``: a collision ends the episode
+    as a failure). Each task is planned in turn by a :class:`PRMPlanner`,
+    then all paths run as one batch through :class:`PathReplayPolicy` (a
+    failed plan: zero actions). A path needing more than ``max_steps`` steps
+    is cut there, as the episode is.
 
     Args:
+        model: the task model (or an env holding one); moved to ``device``, as the env does.
         budget_s: planning time per task, seconds (PRM-0.1: 0.1, PRM-1: 1).
         n_tasks: number of test tasks (paper: 1000).
         seed: seed of the test tasks.
         ompl_seed: seed of OMPL's random generator (see :class:`PRMPlanner`).
         max_steps: episode length (paper: 50).
-        workspace_exit: ``"collision"`` or ``"block"`` (see :class:`~torchrl_silp.UR5eReachEnv`).
-        task_branch: ``"front"`` or ``"any"`` (see :class:`~torchrl_silp.UR5eReachEnv`).
-        device: device of the test env.
+        device: device of the test env and of the planner's checks; the model's by default.
         progress: a tqdm bar over the tasks planned.
-        edge_step: the planner's edge check resolution (rad).
+        edge_step: the planner's edge check resolution (rad); the model's ``motion_resolution`` by default.
         simplify: shortcut the paths within the budget (see :class:`PRMPlanner`).
 
     Returns:
@@ -430,21 +477,29 @@ def evaluate_prm(
         tasks' paths) and ``budget_s``.
     """
     _require_ompl("evaluate_prm")
+    model = as_model(model)
     _check_int("n_tasks", n_tasks, 1)
     _check_int("seed", seed, 0)
+    _check_int("max_steps", max_steps, 1)
     _check_bool("progress", progress)
-    env = UR5eReachEnv(
-        num_envs=n_tasks, seed=seed, max_steps=max_steps, collision_type=0,
-        workspace_exit=workspace_exit, task_branch=task_branch, device=device,
-    )
-    planner = PRMPlanner(env, budget_s, seed=ompl_seed, edge_step=edge_step, simplify=simplify)
+    planner = PRMPlanner(model, budget_s, seed=ompl_seed, edge_step=edge_step, simplify=simplify)
+    device = _device(model, device)
+    # the tasks of evaluate's env: ReachEnv(model, num_envs=n_tasks, seed=seed)'s first reset
+    tasks = model.sample_tasks(n_tasks, torch.Generator(device=device).manual_seed(seed))
     bar = _progress_bar(n_tasks, f"PRM-{budget_s:g}", progress)
     try:
-        metrics, _, info = _plan_and_execute(env, planner, n_tasks, bar)
+        paths, times = _plan_tasks(planner, tasks, n_tasks, bar)
     finally:
         if bar is not None:
             bar.close()
-    times, solved, steps = info["planning_time_s"], info["solved"], info["path_steps"]
+    policy = PathReplayPolicy(model, paths)
+    metrics, rollout = evaluate(
+        policy, n_tasks, seed, model=model, max_steps=max_steps, collision_type=0, device=device, return_rollout=True
+    )
+    if not torch.equal(rollout[:, 0][model.config_key], tasks[model.config_key].to(rollout.device)):
+        raise RuntimeError("the test env's reset drew other tasks than the ones planned")
+    solved = torch.tensor([p is not None for p in paths], dtype=torch.bool)
+    steps = policy.steps.cpu()
     planning = times.mean().item()
     return {
         **metrics,
@@ -458,70 +513,158 @@ def evaluate_prm(
     }
 
 
+def _execute(model: TaskModel, tasks: TensorDictBase, actions: torch.Tensor, max_steps: int):
+    """Run ``actions`` ``[B, T, D]`` from the tasks' starts with ``model.step``, as an env with collision type 0 would.
+
+    Returns ``(state, next_state, reward, collision, success, flags)``, each ``[B, T, ...]``.
+    """
+    state = tasks.select(*model.state_keys)
+    states, nexts, out = [], [], []
+    for t in range(max_steps):
+        nxt, reward, collision, success, flags = model.step(state, actions[:, t])
+        states.append(state)
+        nexts.append(nxt)
+        out.append((reward, collision, success, flags))
+        state = nxt
+    stack = lambda xs: torch.stack(xs, 1)  # noqa: E731
+    return (stack(states), stack(nexts), *(torch.stack([o[k] for o in out], 1) for k in range(4)))
+
+
+def _demonstrations(
+    model: TaskModel, tasks: TensorDictBase, policy: PathReplayPolicy, first_episode: int, max_steps: int, build
+) -> tuple[TensorDict, torch.Tensor]:
+    """The transitions of the tasks' executions that reach the goal, up to and including the successful step,
+    and which tasks' executions did (bool ``[B]``)."""
+    B, D, device = tasks.batch_size[0], model.config_dim, model.device
+    T = max_steps
+    actions = torch.zeros(B, T, D, dtype=model.dtype, device=device)
+    k = min(T, policy._actions.shape[1])
+    actions[:, :k] = policy._actions[:, :k].to(device)
+    state, nxt, reward, collision, success, flags = _execute(model, tasks, actions, T)
+    collision, success = collision.squeeze(-1), success.squeeze(-1)
+    ended = collision | success
+    # alive: steps up to and including the first collision or success (an env with collision type 0 ends there)
+    alive = torch.ones_like(ended)
+    alive[:, 1:] = ~ended[:, :-1].cumsum(-1).bool()
+    ok = (success & alive).any(-1)
+    keep = alive & ok.unsqueeze(-1)
+    b, t = keep.nonzero(as_tuple=True)
+    N = b.numel()
+    false = torch.zeros(N, 1, dtype=torch.bool, device=device)
+    goal_q = tasks.get(model.goal_config_key)[b]
+    succ = success[b, t].unsqueeze(-1)
+    next_td = nxt[b, t]
+    next_td.update(
+        {
+            model.goal_config_key: goal_q,
+            "reward": reward[b, t],
+            "collision": collision[b, t].unsqueeze(-1),
+            "success": succ,
+            "discard": false.clone(),
+            "collision_reason": flags[b, t],
+            "done": succ.clone(),
+            "terminated": succ.clone(),
+            "truncated": false.clone(),
+        }
+    )
+    root = state[b, t]
+    root.update(
+        {
+            "action": actions[b, t],
+            model.goal_config_key: goal_q.clone(),
+            # flags of the state a step starts from: a demo state is never terminal or colliding
+            "collision": false.clone(),
+            "success": false.clone(),
+            "discard": false.clone(),
+            "collision_reason": torch.zeros(N, 1, dtype=flags.dtype, device=device),
+            "done": false.clone(),
+            "terminated": false.clone(),
+            "truncated": false.clone(),
+            "is_demo": torch.ones(N, 1, dtype=torch.bool, device=device),
+            "episode": b + first_episode,
+        }
+    )
+    root = build(root)
+    root.set("next", build(next_td))
+    return root, ok
+
+
 def collect_prm_demonstrations(
+    model: TaskModel,
     n_episodes: int,
     budget_s: float = 1.0,
     *,
     seed: int = 0,
     max_steps: int = 50,
-    workspace_exit: str = "collision",
-    task_branch: str = "front",
     device: torch.device | str | None = None,
     progress: bool = False,
-    edge_step: float = 0.02,
+    edge_step: float | None = None,
     simplify: bool = True,
-) -> tuple[TensorDictBase, dict]:
+    observation_transform=None,
+    observation_keys: Sequence[NestedKey] = ("observation",),
+) -> tuple[TensorDict, dict]:
     """Demonstrations for behaviour cloning (BC-PRM): PRM's successful executions on training tasks.
 
-    ``n_episodes`` tasks of a ``UR5eReachEnv`` seeded with ``seed`` (the
-    training distribution, not the test tasks) are planned (OMPL seeded with
-    ``seed`` too) and executed as in :func:`evaluate_prm`, in batches of up to
-    500; the transitions of the episodes that reach the goal are kept, up to
-    and including the successful step.
+    ``n_episodes`` training tasks (not the test tasks: those that a
+    ``ReachEnv(model, num_envs=min(n_episodes, 500), seed=seed)`` draws on its
+    successive resets) are planned (OMPL seeded with ``seed`` too) in batches
+    of up to 500, and each path is executed from its task's start with
+    ``model.step``, :class:`PathReplayPolicy`'s actions step by step, as the
+    env of :func:`evaluate_prm` would run it (a collision ends the episode, the
+    episode is ``max_steps`` long). The transitions of the episodes that reach
+    the goal are kept, up to and including the successful step, built the way
+    :func:`~torchrl_silp.planning.paths_to_demonstrations` builds the planner's
+    demonstrations: the model's named state at the root and under ``"next"``,
+    and what ``observation_transform`` writes from it on both.
 
     Args:
+        model: the task model (or an env holding one); moved to ``device``.
         n_episodes: tasks attempted.
         budget_s: planning time per task, seconds (paper: 1).
         seed: seed of the training tasks and of OMPL.
-        max_steps, workspace_exit, task_branch, device, progress, edge_step, simplify:
-            as in :func:`evaluate_prm`.
+        max_steps, device, progress, edge_step, simplify: as in :func:`evaluate_prm`.
+        observation_transform: builds the networks' inputs from a named state (a TorchRL
+            transform or any callable ``td -> td``); the model's
+            :class:`~torchrl.envs.CatTensors` (``"observation"``) by default.
+        observation_keys: the keys ``observation_transform`` writes that the transitions keep.
 
     Returns:
-        ``(demos, stats)``: a flat TensorDict ``[N]`` of transitions with
-        ``"observation"``, ``"action"``, ``("next", "observation")``,
-        ``("next", "reward")``, ``("next", "done")``, ``("next",
-        "terminated")`` and ``"episode"`` (long: the attempt's index in
-        ``0 .. n_episodes - 1``), episodes one after the other, steps in
-        order; ``stats`` holds ``n_attempted``, ``n_kept`` (successful
-        episodes), ``n_transitions``, ``success_rate``, ``solved_rate``,
-        ``planning_s`` (total), ``planning_time_max_s`` and ``wall_s``.
+        ``(demos, stats)``: a flat TensorDict ``[N]`` of transitions with the keys
+        of :func:`~torchrl_silp.data.transition_keys` (model, ``observation_keys``),
+        ``"is_demo"`` (bool ``[N, 1]``, True) and ``"episode"`` (long ``[N]``: the
+        attempt's index in ``0 .. n_episodes - 1``), episodes one after the
+        other, steps in order, each closed by its successful, terminating step;
+        ``stats`` holds ``n_attempted``, ``n_kept`` (successful episodes),
+        ``n_transitions``, ``success_rate``, ``solved_rate``, ``planning_s``
+        (total), ``planning_time_max_s`` and ``wall_s``.
     """
     _require_ompl("collect_prm_demonstrations")
     start = time.perf_counter()
+    model = as_model(model)
     _check_int("n_episodes", n_episodes, 1)
     _check_int("seed", seed, 0)
+    _check_int("max_steps", max_steps, 1)
     _check_bool("progress", progress)
-    env = UR5eReachEnv(
-        num_envs=min(n_episodes, _COLLECT_BATCH), seed=seed, max_steps=max_steps, collision_type=0,
-        workspace_exit=workspace_exit, task_branch=task_branch, device=device,
-    )
-    planner = PRMPlanner(env, budget_s, seed=seed, edge_step=edge_step, simplify=simplify)
+    planner = PRMPlanner(model, budget_s, seed=seed, edge_step=edge_step, simplify=simplify)
+    device = _device(model, device)
+    build = model.observation_transform() if observation_transform is None else observation_transform
+    keys = (*transition_keys(model, observation_keys), "is_demo", "episode")
+    generator = torch.Generator(device=device).manual_seed(seed)
+    batch = min(n_episodes, _COLLECT_BATCH)
     bar = _progress_bar(n_episodes, f"PRM-{budget_s:g} demos", progress)
     kept, times, solved = [], [], []
     attempted = n_kept = 0
     try:
         while attempted < n_episodes:
-            take = min(env.batch_size[0], n_episodes - attempted)
-            _, rollout, info = _plan_and_execute(env, planner, take, bar)
-            alive, success, _ = episode_outcomes(rollout)
-            success[take:] = False  # tasks of the last batch that were not wanted (not planned)
-            episode = torch.arange(attempted, attempted + rollout.batch_size[0], device=rollout.device)
-            rollout.set("episode", episode.unsqueeze(-1).expand(rollout.batch_size))
-            kept.append(rollout[alive & success.unsqueeze(-1)].select(*DEMO_KEYS))
-            times.append(info["planning_time_s"])
-            solved.append(info["solved"])
+            take = min(batch, n_episodes - attempted)
+            tasks = model.sample_tasks(batch, generator)[:take]  # what the env's next reset draws
+            paths, t = _plan_tasks(planner, tasks, take, bar)
+            demos, ok = _demonstrations(model, tasks, PathReplayPolicy(model, paths), attempted, max_steps, build)
+            kept.append(demos.select(*keys))
+            times.append(t)
+            solved.append(torch.tensor([p is not None for p in paths], dtype=torch.bool))
             attempted += take
-            n_kept += int(success.sum())
+            n_kept += int(ok.sum())
     finally:
         if bar is not None:
             bar.close()
