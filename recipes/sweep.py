@@ -89,6 +89,9 @@ class Run:
 @contextlib.contextmanager
 def config_context():
     """Hydra's compose API over ``recipes/config``, inside ``@hydra.main`` (already set up) or not."""
+    if str(RECIPES) not in sys.path:
+        sys.path.insert(0, str(RECIPES))
+    importlib.import_module("schema").register()  # the recipes' structured configs
     if GlobalHydra.instance().is_initialized():
         # the sweep's own @hydra.main: its primary config dir is recipes/config
         yield
