@@ -13,6 +13,11 @@ before timing. Figures (milliseconds per call, median of repeats):
 * ``fitted``: as above after ``--fit-steps`` Adam steps on the exact marginal
   log-likelihood (gpytorch: ``ExactMarginalLogLikelihood``).
 
+Then the whole module (torch only): one ``GPGuidedExploration`` call on a
+tensordict of ``B`` UR5e envs that all collided, their ``H - 1`` earlier states
+in the tensordict's history keys: recording the colliding state, drawing and
+motion-checking the candidates, the GP and the choice.
+
 Run::
 
     python benchmarks/gp_exploration.py              # B in {1, 64}, H = 50, n = 64
@@ -30,7 +35,11 @@ import time
 
 import torch
 
-from torchrl_silp.modules.gp_exploration import fit_gp_hyperparameters, gp_posterior
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_silp.models import UR5eReach
+from torchrl_silp.modules.gp_exploration import GPGuidedExploration, fit_gp_hyperparameters, gp_posterior
 
 _has_gpytorch = importlib.util.find_spec("gpytorch") is not None
 
@@ -97,6 +106,40 @@ def gpytorch_predict(x, y, q, fit_steps: int = 0):
         return model(q).mean
 
 
+def module_inputs(model: UR5eReach, b: int, h: int, seed: int = 0) -> TensorDict:
+    """The root tensordict of ``b`` envs whose last step collided, ``h - 1`` states in their histories."""
+    gen = torch.Generator(device=model.device).manual_seed(seed)
+    f = dict(dtype=model.dtype, device=model.device)
+    state = model.sample_tasks(b, gen).select(*model.state_keys)
+    q = state.get(model.config_key)
+    history = torch.zeros(b, h, model.config_dim, **f)
+    history[:, : h - 1] = q.unsqueeze(1) + 0.125 * (torch.rand(b, h - 1, model.config_dim, generator=gen, **f) * 2 - 1)
+    reward = torch.zeros(b, h, **f)
+    reward[:, : h - 1] = -torch.rand(b, h - 1, generator=gen, **f)
+    reward[:, : h - 1 : 7] = model.collision_reward
+    action = torch.rand(b, model.action_dim, generator=gen, **f) * 2 - 1
+    ones = torch.ones(b, 1, dtype=torch.bool, device=model.device)
+    td = state.clone()
+    td.update(
+        {
+            "action": action,
+            "collision": ones,
+            "is_init": ~ones,
+            "_gp_history_config": history,
+            "_gp_history_reward": reward,
+            "_gp_history_count": torch.full((b, 1), h - 1, dtype=torch.long, device=model.device),
+            "_gp_prev_config": q.clone(),
+            "_gp_prev_action": action.clone(),
+        }
+    )
+    return td
+
+
+def module_step(module: GPGuidedExploration, td: TensorDict) -> TensorDict:
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        return module(td.clone())
+
+
 def median_ms(fn, reps: int, device: str = "cpu") -> float:
     def sync():
         if torch.device(device).type == "cuda":
@@ -148,6 +191,22 @@ def main() -> None:
                 print(f"{b:>4} {label:>18} {t_torch:>10.2f} {t_gp:>12.2f} {t_gp / t_torch:>6.1f}x")
             else:
                 print(f"{b:>4} {label:>18} {t_torch:>10.2f} {'(pip install gpytorch)':>12}")
+
+    model = UR5eReach(device=args.device)
+    print(f"\nGPGuidedExploration, one call with B collided envs (history H={args.history}, n={args.candidates})")
+    print(f"{'B':>4} {'hyper-parameters':>18} {'module ms':>10}")
+    for b in args.batch:
+        td = module_inputs(model, b, args.history)
+        for label, fit in (("fixed", False), (f"fitted ({args.fit_steps} steps)", True)):
+            module = GPGuidedExploration(
+                model, num_candidates=args.candidates, history_size=args.history,
+                fit_hyperparameters=fit, fit_steps=args.fit_steps,
+            )
+            out = module_step(module, td)
+            assert module.last_recovery is not None and module.last_recovery.shape == (b,)
+            assert (out["_gp_history_count"] == args.history).all()
+            t_module = median_ms(lambda: module_step(module, td), args.reps, args.device)
+            print(f"{b:>4} {label:>18} {t_module:>10.2f}")
 
 
 if __name__ == "__main__":

@@ -439,6 +439,17 @@ class UR5e(nn.Module):
         self._generate_kernels()
         self._refresh_sphere_cols()
 
+    def __getstate__(self):
+        # the generated kernels are exec'd functions, which pickle cannot name: rebuilt on load
+        state = self.__dict__.copy()
+        for name in ("_gen_tcp", "_gen_tcp_pos", "_gen_frames", "_gen_spheres"):
+            state.pop(name, None)
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._generate_kernels()
+
     def _refresh_sphere_cols(self) -> None:
         # per-frame local columns, the generated sphere kernel's constant inputs
         self._sphere_cols = [self.sphere_local[lo:hi, j] for _, lo, hi in self._sphere_groups for j in range(3)]

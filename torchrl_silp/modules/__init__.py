@@ -3,6 +3,7 @@
 from torchrl_silp.modules.averaging import make_averaged_actor
 from torchrl_silp.modules.gp_exploration import (
     GP_EXPLORATION_MODES,
+    GP_STATE_KEYS,
     GPGuidedExploration,
     fit_gp_hyperparameters,
     gp_negative_log_marginal_likelihood,
@@ -15,6 +16,7 @@ from torchrl_silp.modules.networks import NextGoalOffsetQ
 __all__ = [
     "GPGuidedExploration",
     "GP_EXPLORATION_MODES",
+    "GP_STATE_KEYS",
     "NextGoalOffsetQ",
     "make_averaged_actor",
     "matern52_kernel",

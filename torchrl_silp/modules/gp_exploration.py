@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Unbounded
+from torchrl.envs import TensorDictPrimer
 from torchrl.envs.utils import ExplorationType, exploration_type
+
+from torchrl_silp.models.base import TaskModel
 
 __all__ = [
     "GPGuidedExploration",
     "GP_EXPLORATION_MODES",
+    "GP_STATE_KEYS",
     "matern52_kernel",
     "gp_posterior",
     "gp_negative_log_marginal_likelihood",
@@ -20,6 +26,14 @@ __all__ = [
 ]
 
 GP_EXPLORATION_MODES = ("gp", "random")
+
+# the module's per-env state: private root keys of the tensordict (see GPGuidedExploration)
+HISTORY_CONFIG_KEY = "_gp_history_config"
+HISTORY_REWARD_KEY = "_gp_history_reward"
+HISTORY_COUNT_KEY = "_gp_history_count"
+PREV_CONFIG_KEY = "_gp_prev_config"
+PREV_ACTION_KEY = "_gp_prev_action"
+GP_STATE_KEYS = (HISTORY_CONFIG_KEY, HISTORY_REWARD_KEY, HISTORY_COUNT_KEY, PREV_CONFIG_KEY, PREV_ACTION_KEY)
 
 _SQRT5 = math.sqrt(5.0)
 # bounds of the fitted hyper-parameters: keep the Gram matrix well conditioned in float32
@@ -254,135 +268,157 @@ def fit_gp_hyperparameters(
     return tuple(p.exp() for p in logs)
 
 
+def _flat(value: torch.Tensor, batch: torch.Size, m: int) -> torch.Tensor:
+    """``value`` ``(*batch, *rest)`` as ``(m, *rest)``."""
+    return value.reshape(m, *value.shape[len(batch):])
+
+
 class GPGuidedExploration(TensorDictModuleBase):
     """After a collision, choose the recovery action with a GP model of the episode's rewards.
 
-    The paper's GP-guided exploration (sec. 3.5), as a module placed after
-    the actor (``TensorDictSequential(actor, GPGuidedExploration(env))``),
-    in the manner of :class:`~torchrl.modules.OrnsteinUhlenbeckProcessModule`.
-    When the exploration type is ``RANDOM`` (or unset) and the env's previous
-    step collided (the ``"collision"`` entry, which ``UR5eReachEnv`` declares
-    as an observation so ``step_mdp`` carries it to the root), it
+    The paper's GP-guided exploration (sec. 3.5), as a module placed after the
+    actor (``TensorDictSequential(actor, gp)``), in the manner of TorchRL's
+    :class:`~torchrl.modules.OrnsteinUhlenbeckProcessModule`. It works on any
+    :class:`~torchrl_silp.models.TaskModel` and reads only named keys: the
+    model's state keys (:attr:`TaskModel.state_keys`: the configuration
+    ``"joint_position"``, ``"achieved_goal"``, the scene keys, ``"desired_goal"``),
+    the previous step's collision flag (``"collision"``, an observation of
+    :class:`~torchrl_silp.envs.reach.ReachEnv` that ``step_mdp`` carries to the
+    root), ``"is_init"`` (from :class:`~torchrl.envs.InitTracker`) and the
+    action. When the exploration type is ``RANDOM`` (or unset) and the env's
+    previous step collided, it
 
     1. fits a zero-mean GP with a Matérn-5/2 kernel to the episode so far:
-       visited joint states ``q`` (3-D) -> rewards, collision states included;
-    2. draws ``num_candidates`` actions uniform in ``[-1, 1]^3`` and their
-       next configurations ``env.transition(obs, a)`` (``q + 0.125 a``,
-       clipped to the joint limits);
-    3. predicts each candidate's reward with the posterior mean, min-max
-       scales the predictions to ``[0, 1]`` and normalises them to sum 1
-       (uniform if all are equal); candidates that ``env.collides`` get
-       probability 0 whenever one candidate is collision-free;
+       visited configurations -> rewards, the colliding configuration included;
+    2. draws ``num_candidates`` actions uniform in ``[-1, 1]^A`` and their next
+       states ``model.transition(state, a)``;
+    3. predicts each candidate's reward with the posterior mean, min-max scales
+       the predictions to ``[0, 1]`` and normalises them to sum 1 (uniform if all
+       are equal). With ``mask_colliding_candidates=True`` (the default, ours)
+       candidates whose motion collides (:meth:`TaskModel.motion_collision_flags`,
+       the check the env applies to a step) get probability 0 whenever one of them
+       is collision-free; with ``False`` (the paper's recovery) all candidates
+       keep their GP probability and none is collision-checked;
     4. samples one candidate and outputs its action.
 
-    Otherwise the actor's action passes through untouched (and in
+    Otherwise the actor's action passes through untouched, and in
     ``DETERMINISTIC``/``MEAN``/``MODE`` exploration the module does nothing at
-    all). ``mode="random"`` is the paper's no-GP ablation: a uniformly random
-    collision-free candidate.
+    all. ``mode="random"`` is the paper's no-GP ablation: a uniformly random
+    candidate (collision-free when masking).
 
-    All envs of the batch are handled at once: the collided envs' GPs share
-    one batched Cholesky of ``[B, H, H]``, histories of different lengths
-    padded with identity rows; no Python loop runs over the batch.
+    Per-env state lives in the TensorDict, not in the module, so one module
+    serves any number of envs, batched envs and collector workers. It reads and
+    writes five private root keys (batch shape ``B``, history ``H``, configuration
+    size ``D``, action size ``A``):
 
-    Episode history: the module keeps, per env, a ring buffer of the last
-    ``history_size`` visited states and their rewards (in non-persistent
-    buffers, shaped on the first call and re-shaped if the batch changes).
-    A policy module sees only the current step's root tensordict, so at each
-    call it records the state the previous action led to: the current
-    observation, or, after a collision (when the env put the arm back), the
-    colliding configuration ``env.transition(prev_obs, prev_action)``; and its
-    reward, recomputed as ``env.reward(prev_obs, that_state)`` because
-    ``step_mdp`` drops ``("next", "reward")`` from the root (pass
-    ``reward_key`` to read a root entry instead; this saves one
-    ``env.reward`` evaluation of the batch per step). The first state of an
-    episode is recorded with ``env.reward(obs, obs)``, the task's reward for
-    being there. A row's history is cleared when ``"is_init"`` or ``"done"``
-    is set, or when its goal or obstacle changed (a reset without an
-    ``InitTracker``). Cost outside recoveries: one ``env.transition`` and one
-    ``env.reward`` of the batch per call; a recovery adds the candidates'
-    ``transition`` and ``collides`` (``R·n`` configurations) and the GP solve.
+    * ``"_gp_history_config"`` ``[B, H, D]`` and ``"_gp_history_reward"`` ``[B, H]``:
+      a ring buffer of the episode's visited configurations and their rewards
+      (push ``i`` in slot ``i mod H``; slots not yet written are zero);
+    * ``"_gp_history_count"`` ``[B, 1]`` (long): pushes since the episode began;
+    * ``"_gp_prev_config"`` ``[B, D]``, ``"_gp_prev_action"`` ``[B, A]``: the
+      configuration the last call saw and the action it output.
 
-    Default hyper-parameters: ``ℓ = 0.3`` rad, a little more than the reach
-    of one action (``0.125·√3 ≈ 0.22`` rad), so a recorded collision lowers
+    Absent keys (or a zero count) mean a fresh episode. The module writes the
+    updated values back to the root; for them to reach the next step, append
+    :meth:`make_tensordict_primer` to the env: its
+    :class:`~torchrl.envs.TensorDictPrimer` declares them as observations, so
+    the env copies them to ``"next"``, ``step_mdp`` brings them back to the root
+    and batched envs and collectors carry them (as TorchRL's recurrent modules
+    do). A row's history restarts where ``"is_init"`` is True; nothing else
+    (goals, obstacles) is compared. TorchRL's collectors drop ``"_"`` keys from
+    the batches they yield, so the histories stay out of replay buffers;
+    :meth:`~torchrl.envs.EnvBase.rollout` keeps them (about ``4 (D + 1) H``
+    bytes per frame in float32, twice with ``"next"``).
+
+    Under a multi-process collector each worker holds its own copy of the
+    policy, and the model travels with it: a collector that pickles the policy
+    for its workers needs a model that pickles; otherwise give the collector a
+    ``policy_factory`` that builds the policy in the worker.
+
+    At each call the module records, per env, the state the previous action led
+    to: the current one, or, after a collision (when the env put the arm back),
+    the colliding one ``model.transition(prev_state, prev_action)``, where
+    ``prev_state`` is the current state with the previous configuration; its
+    reward is ``model.outcome(prev_state, that_state)``'s (``step_mdp`` drops
+    ``("next", "reward")`` from the root, so it is recomputed). The first state
+    of an episode is recorded with ``model.goal_reward(achieved, desired)``, the
+    task's reward for being there. Cost outside recoveries: one transition and
+    one motion check of the batch per call; a recovery adds the candidates'
+    transitions, their motion checks when masking (``R·n`` motions of up to one
+    action each: the bulk of a recovery's cost) and the GP solve. All envs
+    are handled at once: the collided envs' GPs share one batched Cholesky of
+    ``[R, H, H]``, histories of different lengths padded with identity rows; no
+    Python loop runs over the batch, and one host sync per call decides whether
+    any env needs a recovery.
+
+    Default hyper-parameters: ``ℓ = 0.3`` rad, a little more than the reach of
+    one UR5e action (``0.125·√3 ≈ 0.22`` rad), so a recorded collision lowers
     the predictions of the candidates next to it, not of the whole
-    neighbourhood; ``s² = 1``; ``σ² = 0.01`` (rewards are exact, the noise
-    keeps revisited states well conditioned). With the zero prior mean,
-    unvisited regions are predicted near 0, above the usual ``-distance``
-    rewards, so the choice also leans towards unexplored directions.
+    neighbourhood; ``s² = 1``; ``σ² = 0.01`` (rewards are exact, the noise keeps
+    revisited states well conditioned). With the zero prior mean, unvisited
+    regions are predicted near 0, above the usual ``-distance`` rewards, so the
+    choice also leans towards unexplored directions.
 
-    GP library: plain torch, not gpytorch, chosen by
-    ``benchmarks/gp_exploration.py`` (fit + posterior mean of B GPs, 50
-    history points, 64 candidates, float32, CPU, 1 thread; docs/results.md):
-
-    ============================  ==========  =============
-    B, hyper-parameters           torch (ms)  gpytorch (ms)
-    ============================  ==========  =============
-    1, fixed                      0.62        11.1
-    64, fixed                     5.1         23.9
-    1, fitted (10 Adam steps)     12.8        51.5
-    64, fitted (10 Adam steps)    74.4        124
-    ============================  ==========  =============
-
-    Torch is 4.7-18x faster with fixed hyper-parameters (the default) and
-    1.7-4x faster when fitting (with the closed-form gradient of
-    :func:`gp_nll_gradient`; back-propagating through the Cholesky instead
-    was slower than gpytorch at B=64). At 50 points the exact solve is all the
-    work there is, and gpytorch's lazy-operator machinery, built for large n,
-    is overhead; torch also adds no dependency.
+    The GP is plain torch (:func:`gp_posterior`, :func:`fit_gp_hyperparameters`),
+    not gpytorch: ``benchmarks/gp_exploration.py`` times both on the work of one
+    recovery (figures in ``docs/results.md``), and plain torch was faster at
+    these sizes and adds no dependency.
 
     Args:
-        env: the task model: needs ``transition(obs, action)``,
-            ``reward(obs, next_obs)`` and ``collides(q3, obstacle)``
-            (a :class:`~torchrl_silp.UR5eReachEnv`). Kept as a plain
-            reference, not a sub-module.
+        model: the :class:`~torchrl_silp.models.TaskModel` the env steps (e.g.
+            ``env.model`` of a :class:`~torchrl_silp.UR5eReachEnv`). Kept as a plain
+            reference, not a sub-module: ``.to()`` on the module does not move it.
 
     Keyword Args:
         mode: ``"gp"`` (default) or ``"random"``.
         num_candidates: candidate actions per recovery, ``>= 1`` (paper: n).
-        history_size: ring-buffer length per env, ``>= 1`` (default 64; an episode of
-            the paper's 50 steps fits).
-        lengthscale, outputscale, noise: the Matérn-5/2 ``ℓ`` (rad), the
-            prior variance ``s²`` and the noise ``σ²``, all ``> 0``.
-        fit_hyperparameters: refine ``ℓ, s², σ²`` per env by ``fit_steps``
-            Adam steps (rate ``fit_lr``) on the log marginal likelihood,
-            starting from the values above, at every recovery.
+        history_size: ring-buffer length ``H`` per env, ``>= 1`` (default 64; an
+            episode of 50 steps fits).
+        lengthscale, outputscale, noise: the Matérn-5/2 ``ℓ`` (rad), the prior
+            variance ``s²`` and the noise ``σ²``, all ``> 0``.
+        fit_hyperparameters: refine ``ℓ, s², σ²`` per env by ``fit_steps`` Adam
+            steps (rate ``fit_lr``) on the log marginal likelihood, starting from
+            the values above, at every recovery.
         fit_steps, fit_lr: see ``fit_hyperparameters``.
-        action_key, observation_key, collision_key, is_init_key, done_key:
-            tensordict keys.
-        reward_key: a root key holding the previous transition's reward, if
-            the pipeline provides one; ``None`` (default) recomputes it.
-        generator: a ``torch.Generator`` on the env's device for the candidate
-            draws; the global one by default.
+        action_key, collision_key, is_init_key: tensordict keys.
+        generator: a ``torch.Generator`` on the model's device for the candidate
+            draws and the choice; the global one by default.
+        mask_colliding_candidates: give colliding candidates probability 0 when a
+            free one exists (default, ours); ``False`` is the paper's recovery.
 
     Attributes:
-        last_recovery: the last recovery step, for inspection and plots (None
-            before the first): a TensorDict ``[R]`` of the collided envs'
-            ``env_index`` and their ``candidate_action`` ``[R, n, 3]``,
-            ``candidate_q`` ``[R, n, 3]``, ``collides`` ``[R, n]``,
-            ``probability`` ``[R, n]`` and chosen ``action`` ``[R, 3]``.
-        history: see the property.
+        last_recovery: for debugging and plots, the last call's recovery in this
+            process (None before the first): a TensorDict ``[R]`` of the collided
+            rows' ``env_index`` (into the flattened batch) and their
+            ``candidate_action`` ``[R, n, A]``, ``candidate_config`` ``[R, n, D]``,
+            ``probability`` ``[R, n]``, chosen ``action`` ``[R, A]`` and, when
+            masking, ``collides`` ``[R, n]``.
 
     Examples:
         >>> import torch
         >>> from tensordict.nn import TensorDictSequential
-        >>> from torchrl.envs import InitTracker, TransformedEnv
+        >>> from torchrl.envs import Compose, InitTracker, TransformedEnv
         >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
         >>> from torchrl.modules import Actor
         >>> from torchrl_silp import UR5eReachEnv
         >>> from torchrl_silp.modules import GPGuidedExploration
         >>> base = UR5eReachEnv(num_envs=4, seed=0, collision_type=2)
-        >>> env = TransformedEnv(base, InitTracker())
+        >>> gp = GPGuidedExploration(base.model, generator=torch.Generator().manual_seed(0))
+        >>> env = TransformedEnv(base, Compose(InitTracker(), gp.make_tensordict_primer()))
+        >>> _ = torch.manual_seed(0)
         >>> actor = Actor(torch.nn.Sequential(torch.nn.Linear(15, 3), torch.nn.Tanh()), in_keys=["observation"])
-        >>> policy = TensorDictSequential(actor, GPGuidedExploration(base))
+        >>> policy = TensorDictSequential(actor, gp)
         >>> with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
-        ...     rollout = env.rollout(20, policy)
-        >>> bool(rollout["action"].abs().max() <= 1)
+        ...     rollout = env.rollout(20, policy, break_when_any_done=False)
+        >>> rollout["_gp_history_config"].shape
+        torch.Size([4, 20, 64, 3])
+        >>> bool((rollout["action"].abs() <= 1).all())
         True
     """
 
     def __init__(
         self,
-        env,
+        model: TaskModel,
         *,
         mode: str = "gp",
         num_candidates: int = 64,
@@ -394,19 +430,13 @@ class GPGuidedExploration(TensorDictModuleBase):
         fit_steps: int = 10,
         fit_lr: float = 0.1,
         action_key: NestedKey = "action",
-        observation_key: NestedKey = "observation",
         collision_key: NestedKey = "collision",
         is_init_key: NestedKey = "is_init",
-        done_key: NestedKey = "done",
-        reward_key: NestedKey | None = None,
         generator: torch.Generator | None = None,
+        mask_colliding_candidates: bool = True,
     ):
-        for name in ("transition", "reward", "collides"):
-            if not callable(getattr(env, name, None)):
-                raise TypeError(
-                    f"env must have callable transition, reward and collides (a UR5eReachEnv); "
-                    f"{type(env).__name__} lacks {name}"
-                )
+        if not isinstance(model, TaskModel):
+            raise TypeError(f"model must be a torchrl_silp.models.TaskModel, got {type(model).__name__}")
         if mode not in GP_EXPLORATION_MODES:
             raise ValueError(f"mode must be one of {GP_EXPLORATION_MODES}, got {mode!r}")
         counts = (("num_candidates", num_candidates), ("history_size", history_size), ("fit_steps", fit_steps))
@@ -417,11 +447,15 @@ class GPGuidedExploration(TensorDictModuleBase):
         for name, value in scales:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        if not isinstance(fit_hyperparameters, bool):
-            raise TypeError(f"fit_hyperparameters must be a bool, got {fit_hyperparameters!r}")
+        for name, value in (("fit_hyperparameters", fit_hyperparameters),
+                            ("mask_colliding_candidates", mask_colliding_candidates)):
+            if not isinstance(value, bool):
+                raise TypeError(f"{name} must be a bool, got {value!r}")
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
         super().__init__()
-        # a plain reference: registering the env would move and save it with the policy
-        self.__dict__["env"] = env
+        # a plain reference: registering the model would move and save it with the policy
+        self.__dict__["model"] = model
         self.mode = mode
         self.num_candidates = num_candidates
         self.history_size = history_size
@@ -432,89 +466,112 @@ class GPGuidedExploration(TensorDictModuleBase):
         self.fit_steps = fit_steps
         self.fit_lr = float(fit_lr)
         self.action_key = action_key
-        self.observation_key = observation_key
         self.collision_key = collision_key
         self.is_init_key = is_init_key
-        self.done_key = done_key
-        self.reward_key = reward_key
         self.generator = generator
+        self.mask_colliding_candidates = mask_colliding_candidates
         self.last_recovery: TensorDict | None = None
-        self.in_keys = [observation_key, action_key, collision_key, is_init_key]
-        self.out_keys = [action_key]
-        for name in ("_hist_q", "_hist_r", "_count", "_prev_obs", "_prev_action", "_has_prev"):
-            self.register_buffer(name, None, persistent=False)
+        self._warned: set[str] = set()
+        self.in_keys = [*model.state_keys, collision_key, is_init_key, action_key, *GP_STATE_KEYS]
+        self.out_keys = [action_key, *GP_STATE_KEYS]
 
     # -------------------------------------------------------------- state
-    def reset(self) -> None:
-        """Forget every env's history (the next call starts new episodes)."""
-        for name in ("_hist_q", "_hist_r", "_count", "_prev_obs", "_prev_action", "_has_prev"):
-            setattr(self, name, None)
+    def make_tensordict_primer(self) -> TensorDictPrimer:
+        """The :class:`~torchrl.envs.TensorDictPrimer` declaring the module's per-env keys; append it to the env.
 
-    def _ensure_state(self, m: int, obs: torch.Tensor, action: torch.Tensor) -> None:
-        if self._count is not None and self._count.shape[0] == m and self._count.device == obs.device:
-            return
-        f = dict(dtype=obs.dtype, device=obs.device)
-        self._hist_q = torch.zeros(m, self.history_size, 3, **f)
-        self._hist_r = torch.zeros(m, self.history_size, **f)
-        self._count = torch.zeros(m, dtype=torch.long, device=obs.device)
-        self._prev_obs = torch.zeros_like(obs)
-        self._prev_action = torch.zeros_like(action)
-        self._has_prev = torch.zeros(m, dtype=torch.bool, device=obs.device)
-
-    @property
-    def history(self) -> TensorDict | None:
-        """Per-env ring buffers: ``q`` ``[B, H, 3]``, ``reward`` ``[B, H]``, ``count`` ``[B]`` (pushes since the reset).
-
-        Slot ``i`` of a row holds push ``i + H·j``; ``min(count, H)`` slots are valid.
+        Specs are unbatched and expanded to the env's batch (``expand_specs=True``);
+        a reset fills the reset rows with zeros (a fresh episode).
         """
-        if self._count is None:
-            return None
-        return TensorDict(
-            q=self._hist_q, reward=self._hist_r, count=self._count, batch_size=self._count.shape
+        model = self.model
+        f = dict(dtype=model.dtype, device=model.device)
+        return TensorDictPrimer(
+            {
+                HISTORY_CONFIG_KEY: Unbounded(shape=(self.history_size, model.config_dim), **f),
+                HISTORY_REWARD_KEY: Unbounded(shape=(self.history_size,), **f),
+                HISTORY_COUNT_KEY: Unbounded(shape=(1,), dtype=torch.long, device=model.device),
+                PREV_CONFIG_KEY: Unbounded(shape=(model.config_dim,), **f),
+                PREV_ACTION_KEY: Unbounded(shape=(model.action_dim,), **f),
+            },
+            expand_specs=True,
         )
 
-    def _push(self, q: torch.Tensor, reward: torch.Tensor, new_episode: torch.Tensor) -> None:
-        count = torch.where(new_episode, torch.zeros_like(self._count), self._count)
-        slot = torch.nn.functional.one_hot(count % self.history_size, self.history_size).bool()
-        self._hist_q = torch.where(slot.unsqueeze(-1), q.unsqueeze(-2), self._hist_q)
-        self._hist_r = torch.where(slot, reward.unsqueeze(-1), self._hist_r)
-        self._count = count + 1
+    def _warn_once(self, what: str, message: str) -> None:
+        if what not in self._warned:
+            self._warned.add(what)
+            warnings.warn(message, stacklevel=3)
+
+    def _flag(self, tensordict: TensorDictBase, key: NestedKey, m: int, device) -> torch.Tensor | None:
+        value = tensordict.get(key, None)
+        if value is None:
+            return None
+        if value.numel() != m:
+            raise ValueError(f"{key!r} must hold one flag per env ({m}), got shape {tuple(value.shape)}")
+        return value.reshape(m).to(device=device, dtype=torch.bool)
+
+    def _read_memory(self, tensordict, batch, m, like: torch.Tensor, action_dim: int):
+        H, D = self.history_size, like.shape[-1]
+        f = dict(dtype=like.dtype, device=like.device)
+        shapes = {
+            HISTORY_CONFIG_KEY: ((H, D), f),
+            HISTORY_REWARD_KEY: ((H,), f),
+            HISTORY_COUNT_KEY: ((1,), dict(dtype=torch.long, device=like.device)),
+            PREV_CONFIG_KEY: ((D,), f),
+            PREV_ACTION_KEY: ((action_dim,), f),
+        }
+        out, missing = {}, []
+        for key, (shape, kw) in shapes.items():
+            value = tensordict.get(key, None)
+            if value is None:
+                missing.append(key)
+                value = torch.zeros(m, *shape, **kw)
+            else:
+                if tuple(value.shape) != (*batch, *shape):
+                    raise ValueError(
+                        f"{key!r} must have shape {(*batch, *shape)} (history_size={H}), got {tuple(value.shape)}: "
+                        "was the primer made by a module with another history_size?"
+                    )
+                value = value.reshape(m, *shape).to(**kw)
+            out[key] = value
+        return out, missing
 
     # ----------------------------------------------------------- recovery
     def candidate_probabilities(
         self,
-        history_q: torch.Tensor,
-        history_r: torch.Tensor,
+        history_config: torch.Tensor,
+        history_reward: torch.Tensor,
         history_mask: torch.Tensor,
-        q_next: torch.Tensor,
+        candidate_config: torch.Tensor,
         collides: torch.Tensor,
     ) -> torch.Tensor:
-        """Sampling probabilities ``(R, n)`` of the candidates ``q_next`` ``(R, n, 3)``.
+        """Sampling probabilities ``(R, n)`` of the candidates ``candidate_config`` ``(R, n, D)``.
 
         GP mode: posterior mean on the history, min-max scaled over the allowed
-        candidates (collision-free ones when there are some, else all) and
-        normalised; uniform over the allowed ones if their predictions are all
-        equal. Random mode: uniform over the allowed candidates.
+        candidates and normalised; uniform over the allowed ones if their
+        predictions are all equal. Random mode: uniform over the allowed
+        candidates. Allowed: the collision-free ones when masking and there are
+        some, else all.
 
         Args:
-            history_q, history_r, history_mask: ``(R, H, 3)``, ``(R, H)``, bool
-                ``(R, H)``: the episodes' visited states, rewards, valid slots.
-            q_next: ``(R, n, 3)`` candidate configurations.
-            collides: bool ``(R, n)``: which candidates collide.
+            history_config, history_reward, history_mask: ``(R, H, D)``, ``(R, H)``,
+                bool ``(R, H)``: the episodes' visited configurations, rewards, valid slots.
+            candidate_config: ``(R, n, D)`` candidate configurations.
+            collides: bool ``(R, n)``: which candidates' motions collide.
         """
-        allowed = ~collides
-        allowed = torch.where(allowed.any(-1, keepdim=True), allowed, torch.ones_like(allowed))
-        uniform = allowed.to(q_next.dtype)
+        allowed = torch.ones_like(collides)
+        if self.mask_colliding_candidates:
+            free = ~collides
+            allowed = torch.where(free.any(-1, keepdim=True), free, allowed)
+        uniform = allowed.to(candidate_config.dtype)
         if self.mode == "random":
             return uniform / uniform.sum(-1, keepdim=True)
         ls, scale, nz = self.lengthscale, self.outputscale, self.noise
         if self.fit_hyperparameters:
             ls, scale, nz = fit_gp_hyperparameters(
-                history_q, history_r, lengthscale=ls, outputscale=scale, noise=nz,
+                history_config, history_reward, lengthscale=ls, outputscale=scale, noise=nz,
                 mask=history_mask, steps=self.fit_steps, lr=self.fit_lr,
             )
         mean, _ = gp_posterior(
-            history_q, history_r, q_next, lengthscale=ls, outputscale=scale, noise=nz,
+            history_config, history_reward, candidate_config, lengthscale=ls, outputscale=scale, noise=nz,
             mask=history_mask, return_var=False,
         )
         inf = torch.full_like(mean, math.inf)
@@ -527,67 +584,109 @@ class GPGuidedExploration(TensorDictModuleBase):
         probs = torch.where(flat, uniform, scaled.clamp(0.0, 1.0))
         return probs / probs.sum(-1, keepdim=True)
 
-    def _recovery_actions(self, obs: torch.Tensor, rows: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-        env, r, n = self.env, obs.shape[0], self.num_candidates
-        actions = torch.rand(r, n, 3, generator=self.generator, dtype=obs.dtype, device=obs.device) * 2 - 1
-        q_next = env.transition(obs.unsqueeze(-2).expand(r, n, obs.shape[-1]), actions)[..., :3]
-        collides = env.collides(q_next, obs[:, None, 6:12])
-        size = self.history_size
-        valid = torch.arange(size, device=obs.device) < self._count[rows].clamp_max(size).unsqueeze(-1)
-        probs = self.candidate_probabilities(self._hist_q[rows], self._hist_r[rows], valid, q_next, collides)
+    def _record(self, state: TensorDict, memory: dict, fresh: torch.Tensor, collided: torch.Tensor):
+        """Push the state the previous action led to, and its reward, into the ring buffers."""
+        model, H = self.model, self.history_size
+        ck, ak = model.config_key, model.achieved_goal_key
+        config, achieved, desired = state.get(ck), state.get(ak), state.get(model.desired_goal_key)
+        # a fresh row's "previous" configuration is its current one: a zero-length motion
+        prev_config = torch.where(fresh.unsqueeze(-1), config, memory[PREV_CONFIG_KEY])
+        prev_state = model.state_at(prev_config, state.select(*model.scene_keys), desired)
+        # after a collision the env put the arm back: the colliding state is recomputed
+        moved = model.transition(prev_state, memory[PREV_ACTION_KEY])
+        hit = collided.unsqueeze(-1)
+        led_to = state.clone(False)
+        led_to.set(ck, torch.where(hit, moved.get(ck).to(config.dtype), config))
+        led_to.set(ak, torch.where(hit, moved.get(ak).to(achieved.dtype), achieved))
+        reward = model.outcome(prev_state, led_to)[0]
+        reward = torch.where(fresh.unsqueeze(-1), model.goal_reward(achieved, desired), reward).squeeze(-1)
+
+        count = torch.where(fresh, torch.zeros_like(memory[HISTORY_COUNT_KEY].squeeze(-1)),
+                            memory[HISTORY_COUNT_KEY].squeeze(-1))
+        keep = ~fresh
+        hist_x = torch.where(keep[:, None, None], memory[HISTORY_CONFIG_KEY], 0.0)
+        hist_r = torch.where(keep[:, None], memory[HISTORY_REWARD_KEY], 0.0)
+        slot = torch.nn.functional.one_hot(count % H, H).bool()
+        hist_x = torch.where(slot.unsqueeze(-1), led_to.get(ck).unsqueeze(-2).to(hist_x.dtype), hist_x)
+        hist_r = torch.where(slot, reward.unsqueeze(-1).to(hist_r.dtype), hist_r)
+        return hist_x, hist_r, count + 1
+
+    def _recovery_actions(self, state, rows, hist_x, hist_r, count) -> torch.Tensor:
+        model, r, n, H = self.model, rows.numel(), self.num_candidates, self.history_size
+        sub = state[rows]
+        config = sub.get(model.config_key)
+        actions = torch.rand(
+            r, n, model.action_dim, generator=self.generator, dtype=config.dtype, device=config.device
+        ) * 2 - 1
+        expanded = sub.unsqueeze(1).expand(r, n)
+        candidate = model.transition(expanded, actions).get(model.config_key)
+        if self.mask_colliding_candidates:
+            flags, _ = model.motion_collision_flags(
+                config.unsqueeze(1).expand_as(candidate), candidate, expanded.select(*model.scene_keys)
+            )
+            collides = flags.squeeze(-1) != 0
+        else:
+            # the paper's recovery does not look at the candidates' collisions: no check to pay for
+            collides = torch.zeros(r, n, dtype=torch.bool, device=config.device)
+        valid = torch.arange(H, device=config.device) < count[rows].clamp_max(H).unsqueeze(-1)
+        probs = self.candidate_probabilities(hist_x[rows], hist_r[rows], valid, candidate, collides)
         pick = torch.multinomial(probs, 1, generator=self.generator).squeeze(-1)
-        chosen = actions[torch.arange(r, device=obs.device), pick]
+        chosen = actions[torch.arange(r, device=config.device), pick]
         self.last_recovery = TensorDict(
-            env_index=rows, candidate_action=actions, candidate_q=q_next, collides=collides,
-            probability=probs, action=chosen, batch_size=[r],
+            env_index=rows, candidate_action=actions, candidate_config=candidate, probability=probs,
+            action=chosen, batch_size=[r],
         )
-        return chosen.to(dtype)
+        if self.mask_colliding_candidates:
+            self.last_recovery.set("collides", collides)
+        return chosen
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if exploration_type() not in (ExplorationType.RANDOM, None):
             return tensordict
-        obs_in = tensordict.get(self.observation_key)
+        model = self.model
+        config_in = tensordict.get(model.config_key)
+        batch = config_in.shape[:-1]
+        m = batch.numel()
+        device = config_in.device
+        state = TensorDict({k: _flat(tensordict.get(k), batch, m) for k in model.state_keys}, batch_size=[m])
         action_in = tensordict.get(self.action_key)
-        m = obs_in.shape[:-1].numel()
-        obs = obs_in.reshape(m, obs_in.shape[-1])
         action = action_in.reshape(m, action_in.shape[-1])
-        self._ensure_state(m, obs, action)
+        memory, missing = self._read_memory(tensordict, batch, m, state.get(model.config_key), model.action_dim)
 
-        def flag(key):
-            value = tensordict.get(key, None)
-            if value is None:
-                return torch.zeros(m, dtype=torch.bool, device=obs.device)
-            return value.reshape(m).to(torch.bool)
-
-        new_episode = ~self._has_prev | flag(self.is_init_key) | flag(self.done_key)
-        # a changed goal or obstacle is a reset the tensordict did not flag
-        new_episode = new_episode | (obs[:, 6:] != self._prev_obs[:, 6:]).any(-1)
-        collided = flag(self.collision_key) & ~new_episode
+        is_init = self._flag(tensordict, self.is_init_key, m, device)
+        if is_init is None:
+            self._warn_once(
+                "is_init",
+                f"GPGuidedExploration: no {self.is_init_key!r} in the tensordict, so episode starts are not seen "
+                "(histories run across resets); add torchrl.envs.InitTracker() to the env.",
+            )
+            is_init = torch.zeros(m, dtype=torch.bool, device=device)
+        if missing and not bool(is_init.all()):
+            self._warn_once(
+                "primer",
+                f"GPGuidedExploration: {missing} missing from the tensordict outside an episode start: append "
+                "gp.make_tensordict_primer() to the env, or every step looks like the first of an episode.",
+            )
+        collision = self._flag(tensordict, self.collision_key, m, device)
+        if collision is None:
+            collision = torch.zeros(m, dtype=torch.bool, device=device)
+        fresh = is_init | (memory[HISTORY_COUNT_KEY].squeeze(-1) == 0)
+        collided = collision & ~fresh
 
         with torch.no_grad():
-            env = self.env
-            prev = torch.where(new_episode.unsqueeze(-1), obs, self._prev_obs)
-            # the state the last action led to: after a collision the env put
-            # the arm back, so the colliding configuration is recomputed
-            led_to = torch.where(
-                collided.unsqueeze(-1), env.transition(self._prev_obs, self._prev_action).to(obs.dtype), obs
-            )
-            reward = tensordict.get(self.reward_key, None) if self.reward_key is not None else None
-            if reward is None:
-                reward = env.reward(prev, led_to)
-            else:
-                reward = torch.where(new_episode.unsqueeze(-1), env.reward(obs, obs), reward.reshape(m, 1))
-            self._push(led_to[:, :3], reward.reshape(m).to(obs.dtype), new_episode)
-
+            hist_x, hist_r, count = self._record(state, memory, fresh, collided)
             # one host sync decides whether any GP work is needed this step
-            rows = collided.nonzero().squeeze(-1) if collided.any() else None
-            chosen = None if rows is None else self._recovery_actions(obs[rows], rows, action.dtype)
+            rows = collided.nonzero().squeeze(-1) if bool(collided.any()) else None
+            chosen = None if rows is None else self._recovery_actions(state, rows, hist_x, hist_r, count)
         if rows is not None:
             # outside no_grad: the passed-through rows keep the actor's graph
-            action = action.index_copy(0, rows, chosen)
+            action = action.index_copy(0, rows, chosen.to(action.dtype))
             tensordict.set(self.action_key, action.reshape(action_in.shape))
 
-        self._prev_obs = obs.detach().clone()
-        self._prev_action = action.detach().to(obs.dtype).clone()
-        self._has_prev = torch.ones_like(self._has_prev)
+        H, D = self.history_size, config_in.shape[-1]
+        tensordict.set(HISTORY_CONFIG_KEY, hist_x.reshape(*batch, H, D))
+        tensordict.set(HISTORY_REWARD_KEY, hist_r.reshape(*batch, H))
+        tensordict.set(HISTORY_COUNT_KEY, count.reshape(*batch, 1))
+        tensordict.set(PREV_CONFIG_KEY, config_in.detach().clone())
+        tensordict.set(PREV_ACTION_KEY, action.detach().to(config_in.dtype).reshape(*batch, -1).clone())
         return tensordict
