@@ -569,10 +569,9 @@ def make_collector_policy():
 def test_multi_sync_collector_with_two_workers():
     from torchrl.collectors import MultiSyncCollector
 
-    # policy_factory: the UR5e model does not pickle (its robot holds generated kernels),
-    # so each worker builds the policy itself
+    # one policy, pickled into each worker with its task model
     collector = MultiSyncCollector(
-        [make_collector_env, make_collector_env], policy_factory=make_collector_policy,
+        [make_collector_env, make_collector_env], policy=make_collector_policy(),
         frames_per_batch=160, total_frames=320,
     )
     try:

@@ -331,9 +331,8 @@ class GPGuidedExploration(TensorDictModuleBase):
     bytes per frame in float32, twice with ``"next"``).
 
     Under a multi-process collector each worker holds its own copy of the
-    policy, and the model travels with it: a collector that pickles the policy
-    for its workers needs a model that pickles; otherwise give the collector a
-    ``policy_factory`` that builds the policy in the worker.
+    policy, the (picklable) task model with it, and its envs' histories travel
+    in their own TensorDicts.
 
     At each call the module records, per env, the state the previous action led
     to: the current one, or, after a collision (when the env put the arm back),
