@@ -1,21 +1,25 @@
-"""Env throughput: EnvBase.step, the raw batched model, the Gymnasium env, and MuJoCo as the peer.
+"""Env throughput: EnvBase.step, the raw batched task model, the Gymnasium env, and MuJoCo as the peer.
 
 Prints steps (transitions) per second for batch 1, 1024 and 16384:
 
-* ``EnvBase.step``: ``step_and_maybe_reset`` as a TorchRL collector calls it;
-* raw model: ``transition`` (the kinematic model f_s) alone, and
-  ``transition`` + ``reward`` (f_s and f_r: FK, sphere cover, obstacle / table /
-  self / workspace checks): a whole step without TorchRL's bookkeeping;
+* ``EnvBase.step``: ``step_and_maybe_reset`` of ``UR5eReachEnv`` as a TorchRL collector calls it;
+* the raw task model (:class:`~torchrl_silp.models.UR5eReach`, no TorchRL bookkeeping):
+  ``transition`` (the kinematic model f_s) alone; ``step`` (f_s and f_r in one pass: FK,
+  sphere cover, obstacle / table / self / workspace checks of the swept motion, up to
+  ``ceil(0.125 / motion_resolution) + 1`` configurations per step); and
+  ``collision_flags`` of one configuration per state (configurations per second);
 * the Gymnasium env (unbatched, batch 1 only);
 * MuJoCo on the same URDF's collision primitives plus the box and the table
   plane: set qpos, ``mj_kinematics`` + ``mj_collision``, one configuration at a
-  time in a Python loop (single thread) — the peer of one step's model work.
+  time in a Python loop (single thread) — the peer of ``collision_flags`` on one
+  configuration (``vs MuJoCo`` compares those two rates).
 
 Each figure is run eager and with ``compile_collision=True`` (the collision
 kernel fused by ``torch.compile``). Run:
 
     python benchmarks/env_throughput.py            # full table
     python benchmarks/env_throughput.py --quick    # smaller repeat counts
+    python benchmarks/env_throughput.py --quick --batch-sizes 1 64 --no-compile --mujoco-configs 1000
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import numpy as np
 import torch
 
 from torchrl_silp import UR5eReachEnv
+from torchrl_silp.models import UR5eReach
 from torchrl_silp.robot import default_urdf_path
 
 
@@ -46,7 +51,7 @@ def timed(fn, min_time: float, min_reps: int = 3) -> float:
 def bench_envbase(env: UR5eReachEnv, min_time: float) -> float:
     td = env.reset()
     gen = torch.Generator().manual_seed(0)
-    actions = torch.rand(64, *env.batch_size, 3, generator=gen) * 2 - 1
+    actions = torch.rand(64, *env.batch_size, env.model.action_dim, generator=gen) * 2 - 1
     state = {"td": td, "i": 0}
 
     def one():
@@ -58,16 +63,19 @@ def bench_envbase(env: UR5eReachEnv, min_time: float) -> float:
     return env.batch_size.numel() / timed(one, min_time)
 
 
-def bench_model(env: UR5eReachEnv, with_reward: bool, min_time: float) -> float:
-    obs = env.reset()["observation"]
-    action = torch.rand(*env.batch_size, 3) * 2 - 1
-
-    def one():
-        nxt = env.transition(obs, action)
-        if with_reward:
-            env.reward(obs, nxt)
-
-    return env.batch_size.numel() / timed(one, min_time)
+def bench_model(model: UR5eReach, batch: int, kind: str, min_time: float) -> float:
+    """States (or configurations) per second of ``model.transition``, ``model.step`` or ``model.collision_flags``."""
+    gen = torch.Generator().manual_seed(0)
+    state = model.sample_tasks(batch, gen).select(*model.state_keys)
+    action = torch.rand(batch, model.action_dim, generator=gen) * 2 - 1
+    scene = state.select(*model.scene_keys)
+    config = state.get(model.config_key)
+    calls = {
+        "transition": lambda: model.transition(state, action),
+        "step": lambda: model.step(state, action),
+        "collision_flags": lambda: model.collision_flags(config, scene),
+    }
+    return batch / timed(calls[kind], min_time)
 
 
 def bench_gym(min_time: float) -> float:
@@ -99,9 +107,9 @@ def bench_mujoco(n: int) -> tuple[float, int]:
     spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[2, 2, 0.1])
     model = spec.compile()
     data = mujoco.MjData(model)
-    env = UR5eReachEnv(batch_size=(n,), seed=0)
-    tasks = env.sample_tasks(n)
-    qpos = env.robot.full_joints(tasks["q"]).double().numpy()
+    task_model = UR5eReach()
+    tasks = task_model.sample_tasks(n, torch.Generator().manual_seed(0))
+    qpos = task_model.robot.full_joints(tasks[task_model.config_key]).double().numpy()
     centres = ((tasks["obstacle"][:, 0::2] + tasks["obstacle"][:, 1::2]) / 2).double().numpy()
     contacts = 0
     start = time.perf_counter()
@@ -119,27 +127,33 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="shorter timing windows")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 1024, 16384])
     parser.add_argument("--no-compile", action="store_true", help="skip the compiled variant")
+    parser.add_argument("--mujoco-configs", type=int, default=None,
+                        help="configurations MuJoCo checks (default 100000, 20000 with --quick)")
     args = parser.parse_args()
     min_time = 0.5 if args.quick else 2.0
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
 
-    mj_rate, ngeom = bench_mujoco(20_000 if args.quick else 100_000)
+    n_mujoco = args.mujoco_configs or (20_000 if args.quick else 100_000)
+    mj_rate, ngeom = bench_mujoco(n_mujoco)
     print(f"MuJoCo mj_kinematics + mj_collision ({ngeom} geoms), Python loop, 1 thread: {mj_rate:,.0f} configs/s")
     gym_rate = bench_gym(min_time)
     print(f"Gymnasium env (batch 1): {gym_rate:,.0f} steps/s ({1e6 / gym_rate:.0f} us/step)")
 
     variants = [("eager", False)] + ([] if args.no_compile else [("compiled", True)])
-    header = f"{'variant':9s} {'batch':>6s} {'EnvBase.step':>14s} {'transition':>14s} {'trans+reward':>14s} {'vs MuJoCo':>10s}"
+    header = (f"{'variant':9s} {'batch':>6s} {'EnvBase.step':>14s} {'transition':>14s} {'model.step':>14s} "
+              f"{'configs/s':>14s} {'vs MuJoCo':>10s}")
     print(header)
     print("-" * len(header))
     for name, compiled in variants:
         for b in args.batch_sizes:
             env = UR5eReachEnv(batch_size=(b,), seed=0, compile_collision=compiled)
+            model = env.model
             step = bench_envbase(env, min_time)
-            trans = bench_model(env, False, min_time)
-            model = bench_model(env, True, min_time)
+            trans = bench_model(model, b, "transition", min_time)
+            fused = bench_model(model, b, "step", min_time)
+            configs = bench_model(model, b, "collision_flags", min_time)
             print(
-                f"{name:9s} {b:6d} {step:14,.0f} {trans:14,.0f} {model:14,.0f} {model / mj_rate:9.1f}x"
+                f"{name:9s} {b:6d} {step:14,.0f} {trans:14,.0f} {fused:14,.0f} {configs:14,.0f} {configs / mj_rate:9.1f}x"
                 f"   (one step {1e6 * b / step:,.0f} us)"
             )
 

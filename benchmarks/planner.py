@@ -9,9 +9,9 @@ conversion to MDP demonstrations with InsertNodes. Roadmaps come from batches
 of ``B`` rollouts of 50 steps of two kinds:
 
 * ``random``: the env's random action, ``env.rollout(50, break_when_any_done=False)``;
-* ``scripted``: a noisy joint-space controller towards each episode's
-  ``goal_q``, so that most episodes reach or nearly reach their goal (the
-  roadmaps of a policy that has learnt something).
+* ``scripted``: a noisy joint-space controller towards each episode's goal
+  configuration (``"goal_joint_position"``), so that most episodes reach or nearly
+  reach their goal (the roadmaps of a policy that has learnt something).
 
 A row that reaches its goal before step 50 is reset by the env and goes on
 with a new episode (as in a collector's batch); the planner plans those too.
@@ -69,6 +69,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torchrl_silp import UR5eReachEnv
+from torchrl_silp.models import TaskModel
 from torchrl_silp.planning import (
     ExperienceRoadmap,
     Paths,
@@ -101,8 +102,8 @@ GOAL_SPEEDUP = 100.0
 
 
 # ---------------------------------------------------------------- rollouts
-def near_goal_policy(noise: float, generator: torch.Generator):
-    """Drive every env's joints towards its ``goal_q`` at full speed, plus Gaussian noise.
+def near_goal_policy(model: TaskModel, noise: float, generator: torch.Generator):
+    """Drive every env's joints towards its goal configuration at full speed, plus Gaussian noise.
 
     The straight joint-space line often runs into the box (start, obstacle and
     goal are drawn so that the box lies between them); the noise lets the arm
@@ -110,8 +111,8 @@ def near_goal_policy(noise: float, generator: torch.Generator):
     """
 
     def policy(td):
-        q = td["observation"][..., :3]
-        towards = ((td["goal_q"] - q) / UR5eReachEnv.ACTION_SCALE).clamp(-1, 1)
+        q = td[model.config_key]
+        towards = ((td[model.goal_config_key] - q) / model.action_scale).clamp(-1, 1)
         jitter = torch.randn(q.shape, generator=generator, device=generator.device, dtype=q.dtype)
         td["action"] = (towards + noise * jitter.to(q.device)).clamp(-1, 1)
         return td
@@ -120,17 +121,18 @@ def near_goal_policy(noise: float, generator: torch.Generator):
 
 
 def make_rollouts(kind: str, batch: int, seed: int, device: str, noise: float):
-    """The env and a ``[B, 50]`` rollout of the ``kind`` policy, deterministic in ``seed``."""
+    """The task model and a ``[B, 50]`` rollout of the ``kind`` policy, deterministic in ``seed``."""
     env = UR5eReachEnv(num_envs=batch, seed=seed, device=device)
+    model = env.model
     torch.manual_seed(seed)  # the env's random action draws from the global generator
     if kind == "random":
         episodes = env.rollout(STEPS, break_when_any_done=False)
     elif kind == "scripted":
         gen = torch.Generator(device=device).manual_seed(seed)
-        episodes = env.rollout(STEPS, policy=near_goal_policy(noise, gen), break_when_any_done=False)
+        episodes = env.rollout(STEPS, policy=near_goal_policy(model, noise, gen), break_when_any_done=False)
     else:
         raise ValueError(f"unknown rollout kind {kind!r}")
-    return env, episodes
+    return model, episodes
 
 
 # ----------------------------------------------------------------- timing
@@ -165,7 +167,7 @@ class Planned:
     stage_s: dict = field(default_factory=dict)
 
 
-def plan_staged(env, episodes, d: float, n_pairs: int, seed: int, method: str, device: str) -> Planned:
+def plan_staged(model, episodes, d: float, n_pairs: int, seed: int, method: str, device: str) -> Planned:
     """``plan_demonstrations``' body, with the time of each stage.
 
     Kept step for step with :func:`plan_demonstrations` (same defaults, same
@@ -173,21 +175,21 @@ def plan_staged(env, episodes, d: float, n_pairs: int, seed: int, method: str, d
     """
     gen = torch.Generator().manual_seed(seed)
     t0 = time.perf_counter()
-    roadmap = ExperienceRoadmap(env, episodes, d=d, lazy=True)
+    roadmap = ExperienceRoadmap(model, episodes, d=d, lazy=True)
     _sync(device)
     t1 = time.perf_counter()
     episode, start, goal = roadmap.queries(n_pairs, gen)
     paths = roadmap_paths(roadmap, episode, start, goal, method=method)
     _sync(device)
     t2 = time.perf_counter()
-    demos = paths_to_demonstrations(env, roadmap, episode, paths)
+    demos = paths_to_demonstrations(model, roadmap, episode, paths)
     _sync(device)
     t3 = time.perf_counter()
     stage_s = {"roadmap": t1 - t0, "search": t2 - t1, "demos": t3 - t2}
     return Planned(roadmap, episode, start, goal, paths, demos, stage_s)
 
 
-def measure(env, episodes, d: float, n_pairs: int, seed: int, method: str, reps: int, device: str, stages: bool):
+def measure(model, episodes, d: float, n_pairs: int, seed: int, method: str, reps: int, device: str, stages: bool):
     """Median time of ``plan_demonstrations``, of its stages (``stages=True``), and one pass's plans.
 
     Every repeat builds a fresh roadmap with the same query draw: a lazy
@@ -196,11 +198,11 @@ def measure(env, episodes, d: float, n_pairs: int, seed: int, method: str, reps:
 
     def call():
         gen = torch.Generator().manual_seed(seed)
-        plan_demonstrations(env, episodes, d=d, n_pairs=n_pairs, method=method, generator=gen)
+        plan_demonstrations(model, episodes, d=d, n_pairs=n_pairs, method=method, generator=gen)
 
     total = median_s(call, reps, device)
     # already warm from the calls above
-    passes = [plan_staged(env, episodes, d, n_pairs, seed, method, device) for _ in range(reps if stages else 1)]
+    passes = [plan_staged(model, episodes, d, n_pairs, seed, method, device) for _ in range(reps if stages else 1)]
     stage_s = {k: statistics.median(p.stage_s[k] for p in passes) for k in passes[0].stage_s}
     return total, stage_s, passes[-1]
 
@@ -243,14 +245,14 @@ def plan_stats(p: Planned) -> dict:
     }
 
 
-def compare_exact_greedy(env, episodes, d: float, n_pairs: int, seed: int) -> dict:
+def compare_exact_greedy(model, episodes, d: float, n_pairs: int, seed: int) -> dict:
     """Exact vs greedy on one roadmap and one query set.
 
     Both searches run on the same lazy roadmap: the exact search returns the
     shortest path of the fully checked roadmap and the greedy walk checks
     every edge it looks at, so neither sees an unchecked edge as free.
     """
-    roadmap = ExperienceRoadmap(env, episodes, d=d, lazy=True)
+    roadmap = ExperienceRoadmap(model, episodes, d=d, lazy=True)
     episode, start, goal = roadmap.queries(n_pairs, torch.Generator().manual_seed(seed))
     exact = roadmap_paths(roadmap, episode, start, goal, method="exact")
     greedy = roadmap_paths(roadmap, episode, start, goal, method="greedy")
@@ -315,9 +317,9 @@ def bench_batches(args, report: Report) -> dict:
     rows, at_max = [], {}
     for kind in args.rollouts:
         for b in args.batch_sizes:
-            env, episodes = make_rollouts(kind, b, args.seed, args.device, args.noise)
+            model, episodes = make_rollouts(kind, b, args.seed, args.device, args.noise)
             total, stages, p = measure(
-                env, episodes, args.d, args.n_pairs, args.seed, "exact", args.reps, args.device, stages=True
+                model, episodes, args.d, args.n_pairs, args.seed, "exact", args.reps, args.device, stages=True
             )
             s = plan_stats(p)
             ms = 1e3 * total
@@ -351,12 +353,12 @@ def bench_distances(args, report: Report) -> None:
     sweep, versus = [], []
     b = args.sweep_batch
     for kind in args.rollouts:
-        env, episodes = make_rollouts(kind, b, args.seed, args.device, args.noise)
+        model, episodes = make_rollouts(kind, b, args.seed, args.device, args.noise)
         for d in args.d_values:
-            total, _, p = measure(env, episodes, d, args.n_pairs, args.seed, "exact", args.reps, args.device, False)
+            total, _, p = measure(model, episodes, d, args.n_pairs, args.seed, "exact", args.reps, args.device, False)
             t_greedy = median_s(
                 lambda: plan_demonstrations(
-                    env, episodes, d=d, n_pairs=args.n_pairs, method="greedy",
+                    model, episodes, d=d, n_pairs=args.n_pairs, method="greedy",
                     generator=torch.Generator().manual_seed(args.seed),
                 ),
                 args.reps, args.device,
@@ -369,7 +371,7 @@ def bench_distances(args, report: Report) -> None:
                 f(1e3 * total / s["Q"], ".4f"), f(1e3 * total / b, ".3f"),
                 f(paper[0], ".3f"), f(paper[1], ".2f"), f(paper[2], ".3f"),
             ])
-            c = compare_exact_greedy(env, episodes, d, args.n_pairs, args.seed)
+            c = compare_exact_greedy(model, episodes, d, args.n_pairs, args.seed)
             versus.append([
                 kind, f"{d:.2f}", str(c["Q"]), f(c["sr_exact"], ".3f"), f(c["sr_greedy"], ".3f"),
                 str(c["violations"]), f(c["ratio"], ".4f"), f(c["shorter"], ".3f"),
@@ -447,11 +449,11 @@ def scipy_dijkstra(weights: torch.Tensor, episode, start, goal) -> torch.Tensor:
 def bench_search(args, report: Report) -> None:
     b = args.sweep_batch
     for kind in args.rollouts:
-        env, episodes = make_rollouts(kind, b, args.seed, args.device, args.noise)
+        model, episodes = make_rollouts(kind, b, args.seed, args.device, args.noise)
         # fully checked: the algorithms alone, not the lazy edge checks between rounds
-        roadmap = ExperienceRoadmap(env, episodes, d=args.d, lazy=False)
+        roadmap = ExperienceRoadmap(model, episodes, d=args.d, lazy=False)
         episode, start, goal = roadmap.queries(args.n_pairs, torch.Generator().manual_seed(args.seed))
-        w, tcp = roadmap.weights, roadmap.tcp
+        w, tcp = roadmap.weights, roadmap.achieved_goal
         ref = shortest_paths(w, episode, start, goal)
 
         def agrees(cost: torch.Tensor) -> str:

@@ -21,14 +21,13 @@ import os
 import platform
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-from utils import load_trained_networks, make_env  # noqa: E402
+from utils import load_trained_networks, make_env, make_model, make_observation_transform  # noqa: E402
 
 from torchrl_silp.eval import DEFAULT_TEST_SEED, evaluate  # noqa: E402
 
@@ -49,20 +48,25 @@ def main(argv=None) -> None:
     torch.set_num_threads(args.threads)
     cfg = OmegaConf.load(args.run_dir / "config.yaml")
     device = torch.device("cpu")
-    actor, _, _ = load_trained_networks(cfg, make_env(cfg, device, seed=0), args.run_dir / "checkpoint", device)
+    model = make_model(cfg, device)  # the run's task model (env.name, env.model)
+    actor, _, _ = load_trained_networks(cfg, model, make_env(cfg, model, device, seed=0), args.run_dir / "checkpoint",
+                                        device)
+
+    def run(n_tasks: int, seed: int) -> dict:
+        # a fresh input transform per test env (a transform belongs to one env)
+        return evaluate(actor, n_tasks=n_tasks, seed=seed, model=model, max_steps=cfg.env.max_steps,
+                        observation_transform=make_observation_transform(cfg, model), device=device)
 
     # one task at a time: each a batch-1 test env of its own seed (same task distribution)
-    evaluate(actor, n_tasks=1, seed=DEFAULT_TEST_SEED, max_steps=cfg.env.max_steps)  # warm-up
+    run(1, DEFAULT_TEST_SEED)  # warm-up
     times, successes = [], 0
     for i in range(args.tasks):
-        out = evaluate(actor, n_tasks=1, seed=DEFAULT_TEST_SEED + 1 + i, max_steps=cfg.env.max_steps,
-                       workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch)
+        out = run(1, DEFAULT_TEST_SEED + 1 + i)
         times.append(out["time_per_rollout_s"])
         successes += int(out["success_rate"])
-    batched = evaluate(actor, n_tasks=1000, max_steps=cfg.env.max_steps, workspace_exit=cfg.env.workspace_exit,
-                       task_branch=cfg.env.task_branch)
+    batched = run(1000, DEFAULT_TEST_SEED)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {args.threads}")
-    print(f"policy of {args.run_dir}")
+    print(f"policy of {args.run_dir} ({cfg.env.name})")
     print(f"  one task at a time ({args.tasks} tasks): median {statistics.median(times) * 1e3:.1f} ms per rollout, "
           f"max {max(times) * 1e3:.1f} ms, success {successes}/{args.tasks}")
     print(f"  batched (1000 tasks, as in Table 1): {batched['time_per_rollout_s'] * 1e3:.3f} ms per rollout, "
@@ -70,8 +74,7 @@ def main(argv=None) -> None:
     if args.budget > 0:
         from torchrl_silp.baselines.prm import evaluate_prm
 
-        prm = evaluate_prm(args.budget, n_tasks=args.tasks, max_steps=cfg.env.max_steps,
-                           workspace_exit=cfg.env.workspace_exit, task_branch=cfg.env.task_branch)
+        prm = evaluate_prm(model, args.budget, n_tasks=args.tasks, max_steps=cfg.env.max_steps, device=device)
         print(f"PRM-{args.budget:g} on the first {args.tasks} test tasks: {prm['time_per_rollout_s'] * 1e3:.1f} ms per rollout "
               f"(planning mean {prm['planning_time_s'] * 1e3:.1f} ms, max {prm['planning_time_max_s'] * 1e3:.1f} ms), "
               f"success {prm['success_rate']:.3f}")

@@ -7,9 +7,10 @@ its planned demonstrations, then times (median of ``--reps`` calls):
 * ``sample``: one ``MixedReplay.sample`` (N_D demos + N_pi interaction transitions);
 * ``rl loss``: the wrapped actor-critic loss's forward (SAC: actor, 2 Q-nets, target);
 * ``bc loss``: the SILP+ term's forward (actor on the demo rows + the reward filter's
-  look-ahead through the env model); ``bc loss, unfused model``: the same with the
-  model's ``transition`` and ``reward`` called separately (the fused
-  ``transition_reward`` hidden), the A/B of that optimisation in one run;
+  look-ahead through the task model's ``step``, f_s and f_r in one pass); ``bc loss,
+  unfused model``: the same with the model's ``transition`` and ``outcome`` called
+  one after the other (the kinematics run twice per look-ahead step), the A/B of
+  the fused step in one run;
 * ``update``: forward + backward + every optimiser step + the soft target update.
 
 Run::
@@ -17,6 +18,7 @@ Run::
     python benchmarks/update_step.py                       # SAC-SILP+, the default config
     python benchmarks/update_step.py silp.bc=false silp.demos=false   # plain SAC
     python benchmarks/update_step.py --threads 1 optim.batch_size=512
+    python benchmarks/update_step.py env=panda_reach      # another task model (an env config group)
 """
 
 from __future__ import annotations
@@ -34,16 +36,29 @@ from hydra import compose, initialize_config_dir
 
 RECIPES = Path(__file__).parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
-from utils import make_actor_critic, make_buffers, make_env, make_loss, make_optimizers  # noqa: E402
+import schema  # noqa: E402
+from utils import make_actor_critic, make_buffers, make_env, make_loss, make_model, make_optimizers  # noqa: E402
 
 from torchrl_silp.objectives import SILPLoss  # noqa: E402
 
+schema.register()
+
 
 class _UnfusedModel:
-    """An env model with transition and reward only: what SILPLoss sees of an env without transition_reward."""
+    """A task model whose ``step`` is its ``transition`` then its ``outcome``: the kinematics run twice.
 
-    def __init__(self, env):
-        self.transition, self.reward = env.transition, env.reward
+    Everything else is the wrapped model's. What ``SILPLoss`` would cost without the fused step.
+    """
+
+    def __init__(self, model):
+        self.__dict__["_model"] = model
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["_model"], name)
+
+    def step(self, state, action):
+        nxt = self._model.transition(state, action)
+        return (nxt, *self._model.outcome(state, nxt))
 
 
 def median_ms(fn, reps: int) -> float:
@@ -67,11 +82,12 @@ def main(argv: list[str] | None = None) -> dict:
     with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
         cfg = compose(config_name="sac_silp", overrides=args.overrides)
     device = torch.device("cpu")
-    env = make_env(cfg, device, seed=0)
-    actor, critic = make_actor_critic(cfg, env, device)
-    loss, updater = make_loss(cfg, actor, critic, env)
+    model = make_model(cfg, device)
+    env = make_env(cfg, model, device, seed=0)
+    actor, critic = make_actor_critic(cfg, model, env, device)
+    loss, updater = make_loss(cfg, actor, critic, model, env)
     optimizers = make_optimizers(cfg, loss)
-    buffers = make_buffers(cfg, env, device)
+    buffers = make_buffers(cfg, model, device)
     with torch.no_grad():
         episodes = env.rollout(cfg.env.max_steps, break_when_any_done=False)
     buffers.extend(episodes)
@@ -92,16 +108,18 @@ def main(argv: list[str] | None = None) -> dict:
         figures["rl loss"] = median_ms(lambda: loss.rl_loss(batch), args.reps)
         figures["bc loss"] = median_ms(lambda: loss.bc_loss(batch), args.reps)
         if cfg.silp.filter == "reward":
-            # the same term through separate transition and reward calls (FK twice per look-ahead step)
-            fused_env = loss.env
-            loss.__dict__["env"] = _UnfusedModel(fused_env)
-            figures["bc loss, unfused model"] = median_ms(lambda: loss.bc_loss(batch), args.reps)
-            loss.__dict__["env"] = fused_env
+            # the same term through separate transition and outcome calls (FK twice per look-ahead step)
+            fused = loss.model
+            loss.model = _UnfusedModel(fused)
+            try:
+                figures["bc loss, unfused model"] = median_ms(lambda: loss.bc_loss(batch), args.reps)
+            finally:
+                loss.model = fused
     else:
         figures["rl loss"] = median_ms(lambda: loss(batch), args.reps)
     figures["update"] = median_ms(update, args.reps)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}, "
-          f"{os.cpu_count()} CPUs; batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, "
+          f"{os.cpu_count()} CPUs; {cfg.env.name}, batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, "
           f"overrides {args.overrides or 'none'}")
     for name, ms in figures.items():
         print(f"{name:>22s}: {ms:7.2f} ms")

@@ -57,7 +57,7 @@ from torchrl_silp.data import transition_keys  # noqa: E402
 from torchrl_silp.eval import episode_outcomes, evaluate  # noqa: E402
 from torchrl_silp.models.base import as_model  # noqa: E402
 
-schema.register_bc()
+schema.register()
 
 SOURCES = ("policy", "prm")
 COLLECT_BATCH = 1000  # source=policy: training tasks rolled out at once

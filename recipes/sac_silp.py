@@ -37,15 +37,15 @@ schema.register()
 
 def train(cfg: DictConfig) -> dict:
     """Train, evaluate on the fixed test tasks, checkpoint, report. Returns the summary dict."""
-    if cfg.collector.frames_per_batch % cfg.env.num_envs:
-        raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
-                         f"of env.num_envs ({cfg.env.num_envs})")
     device, run_dir = utils.start_run(cfg)
     ckpt_dir = run_dir / "checkpoint"
     model = utils.make_model(cfg, device)
     exploration = utils.make_exploration(cfg, model, device)
     primers = [exploration.make_tensordict_primer()] if exploration is not None else []
     env = utils.make_env(cfg, model, device, seed=cfg.seed, primers=primers)
+    if cfg.collector.frames_per_batch % cfg.env.num_envs:
+        raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
+                         f"of env.num_envs ({cfg.env.num_envs})")
     actor, critic = utils.make_actor_critic(cfg, model, env, device)
     loss, updater = utils.make_loss(cfg, actor, critic, model, env)
     optimizers = utils.make_optimizers(cfg, loss)

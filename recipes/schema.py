@@ -129,8 +129,9 @@ class TrainConfig:
 
 
 def register() -> None:
-    """Register the schema as ``train_schema`` (the recipes' configs name it in their defaults)."""
+    """Register the recipes' schemas: ``train_schema`` (sac_silp, ddpg_silp) and ``bc_schema`` (bc)."""
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+    ConfigStore.instance().store(name="bc_schema", node=BCConfig)
 
 
 # ------------------------------------------------------------------ recipes/bc.py
@@ -184,8 +185,3 @@ class BCConfig:
     eval: BCEvalConfig = field(default_factory=BCEvalConfig)
     checkpoint: BCCheckpointConfig = field(default_factory=BCCheckpointConfig)
     logger: BCLoggerConfig = field(default_factory=BCLoggerConfig)
-
-
-def register_bc() -> None:
-    """Register the BC schema as ``bc_schema`` (``config/bc.yaml`` names it in its defaults)."""
-    ConfigStore.instance().store(name="bc_schema", node=BCConfig)

@@ -82,7 +82,7 @@ def make_env(cfg, model, device, seed: int, primers=()) -> TransformedEnv:
     """The batched training env: the model's ReachEnv, collision handling, the networks' inputs,
     ``is_init`` and ``episode_reward`` (read by the loop and the exploration module), and ``primers``."""
     base = ReachEnv(model, num_envs=cfg.env.num_envs, seed=seed, max_steps=cfg.env.max_steps, device=device)
-    transforms = [CollisionHandling(cfg.env.collision_type), *make_observation_transform(cfg, model), InitTracker(), RewardSum()]
+    transforms = [CollisionHandling(cfg.env.collision_type), make_observation_transform(cfg, model), InitTracker(), RewardSum()]
     return TransformedEnv(base, Compose(*transforms, *primers))
 
 

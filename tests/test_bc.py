@@ -12,18 +12,26 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, ValidationError
 from tensordict import TensorDict
+from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from torchrl_silp import UR5eReachEnv
+from torchrl_silp import CollisionHandling, ReachEnv
+from torchrl_silp.data import transition_keys
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
-import bc  # noqa: E402
-from utils import make_actor_critic, make_env, make_loss  # noqa: E402
+import bc  # noqa: E402  (registers the BC schema)
+import schema  # noqa: E402
+import utils  # noqa: E402
+
+schema.register()  # the training recipes' schema, for the source run's config
 
 CPU = torch.device("cpu")
+HAS_OMPL = importlib.util.find_spec("ompl") is not None
 
 
 def compose_config(name: str, overrides: list[str]):
@@ -31,61 +39,82 @@ def compose_config(name: str, overrides: list[str]):
         return compose(config_name=name, overrides=overrides)
 
 
-def greedy_expert(td: TensorDict) -> TensorDict:
-    """A scripted expert: the best of 38 candidate actions by the env's own one-step model."""
-    model = UR5eReachEnv(num_envs=1)
+def greedy_expert(model):
+    """A scripted expert: the best of 38 candidate actions by the task model's transition and reward.
+
+    The reward is scored on where each candidate ends (``collision_flags`` of the next configuration),
+    not along its swept motion as ``model.step`` does: ten times cheaper, and good enough to imitate.
+    """
     gen = torch.Generator().manual_seed(0)
     candidates = torch.cat([torch.rand(32, 3, generator=gen) * 2 - 1, torch.eye(3), -torch.eye(3)])
-    obs = td["observation"]
-    states = obs.unsqueeze(-2).expand(*obs.shape[:-1], candidates.shape[0], obs.shape[-1])
-    _, reward = model.transition_reward(states, candidates.expand(*states.shape[:-1], 3))
-    return td.set("action", candidates[reward.squeeze(-1).argmax(-1)])
+    C = candidates.shape[0]
+
+    def policy(td: TensorDict) -> TensorDict:
+        batch = td.batch_size
+        states = td.select(*model.state_keys).unsqueeze(-1).expand(*batch, C)
+        nxt = model.transition(states, candidates.expand(*batch, C, 3))
+        flags, _ = model.collision_flags(nxt[model.config_key], states.select(*model.scene_keys))
+        reward = model.score(flags, nxt[model.achieved_goal_key], nxt[model.desired_goal_key])[0]
+        return td.set("action", candidates[reward.squeeze(-1).argmax(-1)])
+
+    return policy
+
+
+def source_env(model, source_cfg, n: int, seed: int) -> TransformedEnv:
+    """The env the source policy is rolled out in: collision type 0, its own input transforms."""
+    return TransformedEnv(ReachEnv(model, num_envs=n, seed=seed),
+                          Compose(CollisionHandling(0), utils.make_observation_transform(source_cfg, model)))
 
 
 @pytest.fixture(scope="module")
 def source_run(tmp_path_factory):
     """A finished SAC run dir: its evaluated (averaged) actor imitates the greedy expert, its online actor is untrained.
 
-    Returns the run dir and the expert-imitating actor itself (not loaded from the dir).
+    Returns the run dir, the expert-imitating actor itself (not loaded from the dir) and the run's config.
     """
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("source_run")
     cfg = compose_config("sac_silp", ["env.num_envs=4", "network.hidden_sizes=[64,64]", f"run_dir={root}"])
-    env = make_env(cfg, CPU, seed=0)
+    model = utils.make_model(cfg, CPU)
+    env = utils.make_env(cfg, model, CPU, seed=0)
     torch.manual_seed(0)
-    actor, critic = make_actor_critic(cfg, env, CPU)
-    loss, _ = make_loss(cfg, actor, critic, env)
+    actor, critic = utils.make_actor_critic(cfg, model, env, CPU)
+    loss, _ = utils.make_loss(cfg, actor, critic, model, env)
     online = copy.deepcopy(loss.state_dict())
     # the expert's states and actions, then the actor's deterministic action fitted to them
-    expert_env = UR5eReachEnv(num_envs=200, seed=123, collision_type=0)
     with torch.no_grad():
-        data = expert_env.rollout(50, greedy_expert, break_when_any_done=False)
-    obs, act = data["observation"].reshape(-1, 15), data["action"].reshape(-1, 3)
+        data = source_env(model, cfg, 200, 123).rollout(50, greedy_expert(model), break_when_any_done=False)
+    keys = utils.observation_keys(cfg)
+    inputs, act = data.select(*keys).reshape(-1), data["action"].reshape(-1, 3)
     opt = torch.optim.Adam(actor.parameters(), lr=3e-3)
     gen = torch.Generator().manual_seed(0)
     for _ in range(800):
-        idx = torch.randint(obs.shape[0], (256,), generator=gen)
+        idx = torch.randint(act.shape[0], (256,), generator=gen)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
-            pred = actor(TensorDict(observation=obs[idx], batch_size=[256]))["action"]
+            pred = actor(inputs[idx])["action"]
         fit = (pred - act[idx]).pow(2).mean()
         opt.zero_grad()
         fit.backward()
         opt.step()
-    averaged = TensorDict.from_module(actor).data.clone()
+    # what torch.optim.swa_utils.AveragedModel saves: the module's state under "module."
+    averaged = {f"module.{k}": v.detach().clone() for k, v in actor.state_dict().items()}
     (root / "checkpoint").mkdir()
     torch.save({"loss": online, "averaged_actor": averaged}, root / "checkpoint" / "state.pt")
     OmegaConf.save(cfg, root / "config.yaml", resolve=True)
-    return root, actor
+    return root, actor, cfg
 
 
 def test_policy_demonstrations_are_the_successful_episodes(source_run, monkeypatch):
-    root, expert = source_run
+    root, expert, source_cfg = source_run
     monkeypatch.setattr(bc, "COLLECT_BATCH", 64)  # 150 tasks in batches of 64: the last one is cut
-    policy = bc.load_source_policy(root, CPU)
-    demos, stats = bc.collect_policy_demonstrations(policy, 150, seed=5)
+    model = utils.make_model(source_cfg, CPU)
+    policy, policy_transform = bc.load_source_policy(root, model, CPU)
+    assert policy.in_keys == ["observation", "goal_offset"]
+    # the demonstrations keep what the learner reads (here the flat observation only), not what the source read
+    demos, stats = bc.collect_policy_demonstrations(policy, model, 150, seed=5, policy_transform=policy_transform)
 
     # independently: the expert actor itself, stepped by hand on the same tasks (3 resets of one env of 64)
-    env = UR5eReachEnv(num_envs=64, seed=5, collision_type=0)
+    env = source_env(model, source_cfg, 64, 5)
     batches = []
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         for _ in range(3):
@@ -106,8 +135,8 @@ def test_policy_demonstrations_are_the_successful_episodes(source_run, monkeypat
     assert stats == {"n_attempted": 150, "n_kept": expected.numel(), "n_transitions": int((end[expected] + 1).sum()),
                      "success_rate": expected.numel() / 150}
     assert demos.shape[0] == stats["n_transitions"]
-    assert set(demos.keys(True, True)) >= {"observation", "action", ("next", "observation"), ("next", "reward"),
-                                           ("next", "done"), ("next", "terminated"), "episode"}
+    assert set(demos.keys(True, True)) == {*transition_keys(model), "is_demo", "episode"}
+    assert demos["is_demo"].all()
     assert torch.equal(demos["episode"].unique(), expected)
     for e in expected.tolist():
         ep = demos[demos["episode"] == e]
@@ -117,7 +146,9 @@ def test_policy_demonstrations_are_the_successful_episodes(source_run, monkeypat
         assert ep["next", "terminated"][-1].item() and ep["next", "reward"][-1].item() == 1.0
         assert not ep["next", "done"][:-1].any()
         torch.testing.assert_close(ep["action"], ro["action"][e, :steps])
-        torch.testing.assert_close(ep["next", "observation"], ro["next", "observation"][e, :steps])
+        for key in ("observation", "joint_position", "achieved_goal", "desired_goal"):
+            torch.testing.assert_close(ep["next", key], ro["next", key][e, :steps])
+        torch.testing.assert_close(ep["observation"], ro["observation"][e, :steps])
 
 
 BC_TINY = [
@@ -146,9 +177,14 @@ def test_bc_run_writes_a_consistent_summary(bc_run):
     run_dir = Path(cfg.run_dir)
     assert summary == json.loads((run_dir / "summary.json").read_text())
     assert summary["method"] == "bc" and summary["source"] == "policy" and summary["seed"] == 0
+    assert summary["env"] == "ur5e_reach"
     assert summary["episodes"] == 0 and summary["frames"] == 0 and summary["updates"] == 300
     cache = torch.load(run_dir / "demos.pt", weights_only=False)
     demos = cache["demos"]
+    model = utils.make_model(cfg, CPU)
+    # the demonstrations hold what the BC actor reads: the observation and the goal offset
+    assert set(demos.keys(True, True)) == {*transition_keys(model, utils.observation_keys(cfg)), "is_demo", "episode"}
+    torch.testing.assert_close(demos["goal_offset"], demos["desired_goal"] - demos["achieved_goal"])
     assert summary["n_demos_attempted"] == 100
     assert 0 < summary["n_demos_kept"] == demos["episode"].unique().numel() < 100
     assert summary["n_transitions"] == demos.shape[0]
@@ -161,10 +197,12 @@ def test_bc_run_writes_a_consistent_summary(bc_run):
     assert OmegaConf.load(run_dir / "config.yaml").source_run_dir == cfg.source_run_dir
 
     # the reported success rate is that of the checkpointed BC network on the same test tasks
-    actor = bc.make_bc_actor(cfg, CPU)
+    actor = bc.make_bc_actor(cfg, model, CPU)
+    assert actor.in_keys == utils.observation_keys(cfg)
     state = torch.load(run_dir / "checkpoint" / "state.pt", weights_only=False)
     bc.make_bc_loss(actor).load_state_dict(state["loss"])
-    again = bc.evaluate(actor, n_tasks=50, seed=cfg.eval.seed)
+    again = bc.evaluate(actor, n_tasks=50, seed=cfg.eval.seed, model=model,
+                        observation_transform=utils.make_observation_transform(cfg, model))
     assert again["success_rate"] == summary["success_rate"]
     assert again["collision_rate"] == summary["test_collision_rate"]
 
@@ -173,12 +211,14 @@ def test_bc_fits_the_demonstrated_actions(bc_run):
     cfg, _, _ = bc_run
     run_dir = Path(cfg.run_dir)
     demos = torch.load(run_dir / "demos.pt", weights_only=False)["demos"]
+    model = utils.make_model(cfg, CPU)
     torch.manual_seed(cfg.seed)  # the run's initial network
-    untrained = bc.make_bc_actor(cfg, CPU)
-    trained = bc.make_bc_actor(cfg, CPU)
+    untrained = bc.make_bc_actor(cfg, model, CPU)
+    trained = bc.make_bc_actor(cfg, model, CPU)
     bc.make_bc_loss(trained).load_state_dict(torch.load(run_dir / "checkpoint" / "state.pt", weights_only=False)["loss"])
+    inputs = demos.select(*utils.observation_keys(cfg))
     with torch.no_grad():
-        mse = {name: (net(demos.select("observation"))["action"] - demos["action"]).pow(2).mean().item()
+        mse = {name: (net(inputs.clone())["action"] - demos["action"]).pow(2).mean().item()
                for name, net in (("untrained", untrained), ("trained", trained))}
     assert mse["trained"] < 0.3 * mse["untrained"], mse
 
@@ -199,22 +239,48 @@ def test_resume_after_completion_does_not_collect_again(bc_run):
     # resuming with other collection settings than the cache's is refused
     with pytest.raises(ValueError, match="n_demos"):
         bc.run(compose_config("bc", [*overrides, "resume=true", "n_demos=101"]))
+    # so is resuming with other network inputs than the demonstrations hold
+    with pytest.raises(ValueError, match="observation_keys"):
+        bc.run(compose_config("bc", [*overrides, "resume=true", "network.goal_relative=false"]))
+
+
+@pytest.mark.parametrize("override", ["n_demos=abc", "optim.lr=fast", "network.goal_relative=maybe", "seed=1.5"])
+def test_wrong_types_are_rejected_by_the_schema(override):
+    # hydra wraps the schema's error of a command-line override in a ConfigCompositionException
+    with pytest.raises(ConfigCompositionException) as err:
+        compose_config("bc", [override])
+    assert isinstance(err.value.__cause__, ValidationError)
+    assert override.split("=")[0].split(".")[-1] in str(err.value.__cause__)
+
+
+def test_unknown_fields_are_rejected_by_the_schema():
+    with pytest.raises(ConfigCompositionException) as err:
+        compose_config("bc", ["optim.learning_rate=0.1"])
+    assert isinstance(err.value.__cause__, (ConfigKeyError, ConfigAttributeError))
+    assert "learning_rate" in str(err.value.__cause__)
 
 
 @pytest.mark.parametrize(
     "override,name",
     [
+        # checked by the recipe (no library component takes them)
         ("source=expert", "source"),
         ("source_run_dir=null", "source_run_dir"),
         ("source_run_dir=/nonexistent/run", "source_run_dir"),
         ("source_run_dir=EMPTY", "source_run_dir"),
-        ("n_demos=0", "n_demos"),
-        ("prm_budget_s=0", "prm_budget_s"),
+        ("source_run_dir=OTHER_TASK", "env.name"),
         ("optim.n_updates=-1", "optim.n_updates"),
-        ("optim.lr=0", "optim.lr"),
+        ("optim.batch_size=0", "optim.batch_size"),
         ("eval.every_updates=0", "eval.every_updates"),
-        ("network.hidden_sizes=[]", "network.hidden_sizes"),
-        ("env.task_branch=back", "env.task_branch"),
+        ("checkpoint.every_updates=0", "checkpoint.every_updates"),
+        # checked by the library where the values are used, naming its parameter
+        ("n_demos=0", "n_episodes"),
+        pytest.param("prm_budget_s=0", "budget_s",
+                     marks=pytest.mark.skipif(not HAS_OMPL, reason="OMPL is not installed")),
+        ("optim.lr=-1", "learning rate"),
+        ("env.model.task_branch=back", "task_branch"),
+        ("env.name=mars_rover", "name"),
+        ("env.max_steps=0", "max_steps"),
         ("device=tpu", "device"),
     ],
 )
@@ -223,11 +289,23 @@ def test_bad_config_is_rejected_before_work(tmp_path, source_run, override, name
         (tmp_path / "empty").mkdir()
         (tmp_path / "empty" / "config.yaml").write_text((source_run[0] / "config.yaml").read_text())
         override = f"source_run_dir={tmp_path / 'empty'}"
+    if override == "source_run_dir=OTHER_TASK":  # a run of another task
+        other = tmp_path / "other"
+        (other / "checkpoint").mkdir(parents=True)
+        source_cfg = OmegaConf.load(source_run[0] / "config.yaml")
+        source_cfg.env.name = "panda_reach"
+        OmegaConf.save(source_cfg, other / "config.yaml")
+        (other / "checkpoint" / "state.pt").write_bytes((source_run[0] / "checkpoint" / "state.pt").read_bytes())
+        override = f"source_run_dir={other}"
+    if override.startswith("prm_budget_s"):
+        override = ["source=prm", override]
     run_dir = tmp_path / "run"
-    cfg = compose_config("bc", [f"source_run_dir={source_run[0]}", f"run_dir={run_dir}", override])
-    with pytest.raises(ValueError, match=name):
+    overrides = [f"source_run_dir={source_run[0]}", f"run_dir={run_dir}", "progress=false"]
+    cfg = compose_config("bc", [*overrides, *(override if isinstance(override, list) else [override])])
+    with pytest.raises((ValueError, TypeError)) as err:
         bc.run(cfg)
-    assert not run_dir.exists()
+    assert name in str(err.value)
+    assert not (run_dir / "demos.pt").exists() and not (run_dir / "checkpoint").exists()
 
 
 def test_a_source_without_successes_stops_the_run(tmp_path, source_run):
@@ -243,13 +321,15 @@ def test_a_source_without_successes_stops_the_run(tmp_path, source_run):
         bc.run(cfg)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("ompl") is None, reason="OMPL is not installed")
+@pytest.mark.skipif(not HAS_OMPL, reason="OMPL is not installed")
 def test_prm_source_end_to_end(tmp_path):
     cfg = compose_config("bc", ["source=prm", "n_demos=4", "prm_budget_s=1.0", "optim.n_updates=20",
                                 "eval.every_updates=20", "eval.n_tasks=10", "network.hidden_sizes=[16]",
                                 "progress=false", "threads=1", f"run_dir={tmp_path / 'run'}"])
     summary = bc.run(cfg)
     demos = torch.load(tmp_path / "run" / "demos.pt", weights_only=False)["demos"]
+    model = utils.make_model(cfg, CPU)
+    assert set(demos.keys(True, True)) >= {*transition_keys(model, utils.observation_keys(cfg)), "episode"}
     assert summary["source"] == "prm" and summary["n_demos_attempted"] == 4
     assert 0 < summary["n_demos_kept"] == demos["episode"].unique().numel() <= 4
     assert summary["n_transitions"] == demos.shape[0]

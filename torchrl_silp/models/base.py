@@ -257,16 +257,28 @@ class TaskModel(ABC):
         delta = config_to - config_from
         span = float(delta.detach().abs().amax()) if delta.numel() else 0.0
         n = max(int(math.ceil(span / h - 1e-9)), 1) + 1
-        t = torch.linspace(0, 1, n, dtype=config_from.dtype, device=config_from.device).view(n, *([1] * len(batch)), 1)
-        samples = config_from + t * delta  # (n, ..., D)
         if scene.batch_size != batch:
             scene = scene.expand(*batch)
-        scene_n = scene.unsqueeze(0).expand(n, *batch)
-        flags, goals = self.collision_flags(samples, scene_n, self.motion_margin(h))
-        combined = flags[0]
-        for k in range(1, n):
-            combined = combined | flags[k]
-        return combined, goals[-1]
+        margin = self.motion_margin(h)
+        t = torch.linspace(0, 1, n, dtype=config_from.dtype, device=config_from.device).view(n, 1, 1)
+        flat_from, flat_delta = config_from.reshape(-1, self.config_dim), delta.reshape(-1, self.config_dim)
+        flat_scene = scene.reshape(-1)
+        rows = flat_from.shape[0]
+        # chunks of rows bound the (samples x rows x spheres) temporaries however large the batch
+        step = max(1, _CHUNK // n)
+        flag_parts, goal_parts = [], []
+        for lo in range(0, max(rows, 1), step):
+            q = flat_from[lo : lo + step] + t * flat_delta[lo : lo + step]  # (n, r, D)
+            part = flat_scene[lo : lo + step]
+            flags, goals = self.collision_flags(q, part.unsqueeze(0).expand(n, *part.batch_size), margin)
+            combined = flags[0]
+            for k in range(1, n):  # over the samples, not the batch
+                combined = combined | flags[k]
+            flag_parts.append(combined)
+            goal_parts.append(goals[-1])
+        flags = torch.cat(flag_parts) if len(flag_parts) > 1 else flag_parts[0]
+        goals = torch.cat(goal_parts) if len(goal_parts) > 1 else goal_parts[0]
+        return flags.reshape(*batch, 1), goals.reshape(*batch, self.goal_dim)
 
     def segment_collision_free(
         self, config_from: torch.Tensor, config_to: torch.Tensor, scene: TensorDictBase,
