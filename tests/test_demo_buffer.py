@@ -1,4 +1,4 @@
-"""DemoReplayBuffer and MixedReplay: exact split, flags, empty buffers, checkpoint round trip."""
+"""DemoReplayBuffer and MixedReplay: exact split, flags, empty buffers, checkpoint round trip, planned demos."""
 
 import pytest
 import torch
@@ -6,7 +6,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchrl_silp import UR5eReachEnv
-from torchrl_silp.data import TRANSITION_KEYS, DemoReplayBuffer, MixedReplay
+from torchrl_silp.data import TRANSITION_KEYS, DemoReplayBuffer, MixedReplay, transition_keys
+from torchrl_silp.planning import plan_demonstrations
+
+STATE_KEYS = ("joint_position", "achieved_goal", "obstacle", "desired_goal")
 
 
 @pytest.fixture(scope="module")
@@ -15,13 +18,20 @@ def env():
 
 
 @pytest.fixture(scope="module")
+def model(env):
+    return env.model
+
+
+@pytest.fixture(scope="module")
 def episodes(env):
-    torch.manual_seed(0)
-    return env.rollout(50, break_when_any_done=False)
+    env.set_seed(0)
+    gen = torch.Generator().manual_seed(0)
+    policy = lambda td: td.set("action", torch.rand(8, 3, generator=gen) * 2 - 1)  # noqa: E731
+    return env.rollout(50, policy=policy, break_when_any_done=False)
 
 
 def filled(env, episodes, n_demo_rows=100, demo_fraction=0.25, **kw):
-    demos = DemoReplayBuffer(env, capacity=10_000)
+    demos = DemoReplayBuffer(env.model, capacity=10_000)
     # ready-made transitions stand in for planned ones: the split logic is what is tested
     demos.add_demonstrations(episodes.reshape(-1)[:n_demo_rows].clone())
     mixed = MixedReplay(demos, interaction_capacity=10_000, demo_fraction=demo_fraction, **kw)
@@ -95,8 +105,12 @@ def test_both_empty_and_bad_arguments(env):
         MixedReplay(DemoReplayBuffer(env), demo_fraction="uniform")
     with pytest.raises(ValueError, match="capacity"):
         DemoReplayBuffer(env, capacity=0)
-    with pytest.raises(TypeError, match="env"):
+    with pytest.raises(TypeError, match="TaskModel"):
         DemoReplayBuffer(object())
+    with pytest.raises(ValueError, match="observation_transform"):
+        DemoReplayBuffer(env, planner_kwargs={"observation_transform": None})
+    with pytest.raises(ValueError, match="keys"):
+        DemoReplayBuffer(env, keys="all")
 
 
 def test_discarded_transitions_are_dropped(env, episodes):
@@ -128,14 +142,65 @@ def test_checkpoint_round_trip(env, episodes, tmp_path):
     assert (restored.interaction_buffer[:n] == a).all()
 
 
-def test_demo_buffer_plans_from_episodes(env, episodes):
-    demos = DemoReplayBuffer(env, capacity=100_000, batch_size=64)
-    demos.extend(episodes)
+def test_transition_keys(model):
+    keys = transition_keys(model)
+    assert keys[: len(TRANSITION_KEYS)] == TRANSITION_KEYS
+    named = [*STATE_KEYS, *[("next", k) for k in STATE_KEYS]]
+    assert set(keys) == set(TRANSITION_KEYS) | set(named) and len(keys) == len(set(keys))
+    more = transition_keys(model, ("observation", "goal_offset"))
+    assert set(more) == set(keys) | {"goal_offset", ("next", "goal_offset")}
+    # the default buffer stores exactly these
+    assert DemoReplayBuffer(model).keys == keys
+    assert DemoReplayBuffer(model, observation_keys=("observation", "goal_offset")).keys == more
+    assert DemoReplayBuffer(model, keys=None).keys is None
+
+
+def test_demo_buffer_plans_from_episodes(env, model, episodes):
+    gen = torch.Generator().manual_seed(3)
+    demos = DemoReplayBuffer(env, capacity=100_000, batch_size=64, planner_kwargs={"n_pairs": 4, "generator": gen})
+    assert demos.model is model
+    index = demos.extend(episodes)
     assert len(demos) > 0 and demos.planning_time > 0
-    assert demos.episodes_planned >= 8
+    # 8 rows of 50 steps, plus the episodes that ended early (a success or max_steps)
+    assert demos.episodes_planned == 8 + int(episodes["next", "done"][:, :-1].sum())
+    assert demos.demos_added == len(demos) == index.numel()
+    # what is stored is what the planner makes of the episodes (same draw), keys selected
+    planned = plan_demonstrations(model, episodes, n_pairs=4, generator=torch.Generator().manual_seed(3))
+    assert len(planned) == len(demos)
+    stored = demos[: len(demos)]
+    assert set(stored.keys(True, True)) - {"index"} == set(transition_keys(model))
+    for key in transition_keys(model):
+        if key != "is_demo":
+            assert torch.equal(stored[key], planned[key]), key
     batch = demos.sample()
     assert batch["is_demo"].all()
-    assert set(TRANSITION_KEYS) <= set(batch.keys(include_nested=True))
-    # demo actions are feasible and their rewards are the env's own
+    # demo actions are feasible and their rewards are the model's own on the named states
     assert batch["action"].abs().max() <= 1.0
-    torch.testing.assert_close(batch["next", "reward"], env.reward(batch["observation"], batch["next", "observation"]))
+    s0, s1 = batch.select(*STATE_KEYS), batch["next"].select(*STATE_KEYS)
+    torch.testing.assert_close(batch["next", "reward"], model.outcome(s0, s1)[0])
+    dist = (s1["achieved_goal"] - s1["desired_goal"]).norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(batch["next", "reward"], torch.where(dist < model.success_distance, 1.0, -dist))
+    assert torch.equal(batch["observation"], model.observation(s0))
+    assert torch.equal(batch["next", "observation"], model.observation(s1))
+    # a demo ends with its successful step
+    assert torch.equal(batch["next", "done"], batch["next", "terminated"])
+    assert torch.equal(batch["next", "done"], dist < model.success_distance)
+
+
+def test_mixed_batches_carry_the_named_state(env, model, episodes):
+    mixed = MixedReplay(DemoReplayBuffer(model, planner_kwargs={"n_pairs": 2}), demo_fraction=0.25, batch_size=64)
+    assert mixed.keys == transition_keys(model)
+    mixed.extend(episodes)
+    mixed.demo_buffer.extend(episodes)
+    out = mixed.sample()
+    assert int(out["is_demo"].sum()) == 16
+    assert set(out.keys(True, True)) == set(transition_keys(model))
+    # interaction rows are stored transitions (not discarded ones), with their named state intact
+    flat = episodes.reshape(-1)
+    flat = flat[~flat["next", "discard"].squeeze(-1)]
+    rows = out[16:]
+    match = (rows["observation"].unsqueeze(1) == flat["observation"].unsqueeze(0)).all(-1)
+    match &= (rows["action"].unsqueeze(1) == flat["action"].unsqueeze(0)).all(-1)
+    assert match.any(1).all()
+    assert torch.equal(rows["observation"], model.observation(rows))
+    assert torch.equal(rows["next", "observation"], model.observation(rows["next"]))

@@ -1,4 +1,4 @@
-"""SILPLoss: the paper's eqs. 5-7 by hand, gradient routing, demo-free batches, SAC / DDPG / TD3."""
+"""SILPLoss: the paper's eqs. 5-7 by hand with the task model, gradient routing, demo-free batches, SAC / DDPG / TD3."""
 
 import pytest
 import torch
@@ -11,10 +11,12 @@ from torchrl.modules import Actor, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import UR5eReachEnv
+from torchrl_silp.models import UR5eReach
 from torchrl_silp.objectives import SILPLoss
 
 N = 8
 IS_DEMO = [True, True, True, True, True, True, False, False]
+STATE_KEYS = ("joint_position", "achieved_goal", "obstacle", "desired_goal")
 
 
 class Critic(nn.Module):
@@ -59,46 +61,44 @@ def make_loss(kind):
 
 
 @pytest.fixture(scope="module")
-def env():
-    return UR5eReachEnv(num_envs=N, seed=0)
+def model():
+    return UR5eReach()
 
 
-def make_batch(env, seed=0, demos=IS_DEMO):
-    env.set_seed(seed)  # the same tasks whichever tests ran before on the shared env
-    obs = env.reset()["observation"]
+def make_batch(model, seed=0, demos=IS_DEMO):
+    """Transitions from sampled tasks: named state and flat observation at the root and under "next"."""
     gen = torch.Generator().manual_seed(seed)
+    state = model.sample_tasks(N, gen).select(*STATE_KEYS)
     action = torch.rand(N, 3, generator=gen) * 2 - 1
-    nxt = env.transition(obs, action)
-    reward = env.reward(obs, nxt)
+    nxt, reward = model.step(state, action)[:2]
     # stored rewards the model could not produce: the filter must read them, not recompute them
     reward[1] = 5.0
     reward[2] = -50.0
     false = torch.zeros(N, 1, dtype=torch.bool)
-    return TensorDict(
-        observation=obs,
-        action=action,
-        is_demo=torch.tensor(demos).unsqueeze(-1),
-        next=TensorDict(observation=nxt, reward=reward, done=false, terminated=false, batch_size=[N]),
-        batch_size=[N],
-    )
+    td = state.clone()
+    td.update(dict(observation=model.observation(state), action=action, is_demo=torch.tensor(demos).unsqueeze(-1)))
+    nxt.update(dict(observation=model.observation(nxt), reward=reward, done=false, terminated=false))
+    td["next"] = nxt
+    return td
 
 
 # ------------------------------------------------------------- by hand
-def hand_policy(actor, s):
-    """π(s) of one state: the deterministic actor's output or the TanhNormal's deterministic sample."""
-    td = TensorDict(observation=s.unsqueeze(0), batch_size=[1])
+def hand_policy(actor, obs):
+    """π(s) of one flat observation: the deterministic actor's output or the TanhNormal's deterministic sample."""
+    td = TensorDict(observation=obs.unsqueeze(0), batch_size=[1])
     with torch.no_grad():
         if isinstance(actor, ProbabilisticActor):
             return actor.get_dist(td).deterministic_sample[0]
         return actor(td)["action"][0]
 
 
-def hand_return(env, actor, r0, s1, k, gamma):
-    """Eq. 7: r_0 + sum_j gamma^j f_r(s_j, pi(s_j)), states through f_s, one step at a time."""
+def hand_return(model, actor, r0, s1, k, gamma):
+    """Eq. 7: r_0 + sum_j gamma^j f_r(s_j, pi(s_j)), one state ([1] TensorDict) at a time, f_s then f_r."""
     ret, state = float(r0), s1
     for j in range(1, k + 1):
-        nxt = env.transition(state, hand_policy(actor, state))
-        ret += gamma**j * float(env.reward(state, nxt))
+        action = hand_policy(actor, model.observation(state)[0]).unsqueeze(0)
+        nxt = model.transition(state, action)
+        ret += gamma**j * float(model.reward(state, nxt))
         state = nxt
     return ret
 
@@ -116,7 +116,7 @@ def hand_q(loss, s, a):
     return min(values)
 
 
-def hand_bc(env, loss, actor, data, filt, k, gamma, lambda2):
+def hand_bc(model, loss, actor, data, filt, k, gamma, lambda2):
     total, passed, demos, returns = 0.0, [], 0, []
     for i in range(N):
         if not bool(data["is_demo"][i]):
@@ -125,9 +125,11 @@ def hand_bc(env, loss, actor, data, filt, k, gamma, lambda2):
         s, a = data["observation"][i], data["action"][i]
         pi = hand_policy(actor, s)
         if filt == "reward":
-            r_demo = hand_return(env, actor, data["next", "reward"][i], data["next", "observation"][i], k, gamma)
-            s1 = env.transition(s, pi)
-            r_pi = hand_return(env, actor, env.reward(s, s1), s1, k, gamma)
+            s0 = data.select(*STATE_KEYS)[i : i + 1]
+            s1_demo = data["next"].select(*STATE_KEYS)[i : i + 1]
+            r_demo = hand_return(model, actor, data["next", "reward"][i], s1_demo, k, gamma)
+            s1 = model.transition(s0, pi.unsqueeze(0))
+            r_pi = hand_return(model, actor, model.reward(s0, s1), s1, k, gamma)
             keep = r_demo > r_pi
             returns.append((r_demo, r_pi))
         else:
@@ -141,13 +143,13 @@ def hand_bc(env, loss, actor, data, filt, k, gamma, lambda2):
     "kind,filt,k",
     [("ddpg", "reward", 1), ("ddpg", "reward", 2), ("sac", "reward", 2), ("ddpg", "q", 1), ("sac", "q", 1)],
 )
-def test_bc_term_matches_hand_computation(env, kind, filt, k):
+def test_bc_term_matches_hand_computation(model, kind, filt, k):
     rl_loss, actor = make_loss(kind)
     gamma = 0.9
-    silp = SILPLoss(rl_loss, env, filter=filt, k=k, gamma=gamma, lambda1=0.5, lambda2=3.0)
+    silp = SILPLoss(rl_loss, model, filter=filt, k=k, gamma=gamma, lambda1=0.5, lambda2=3.0)
     # a batch on which every case below sees demos both pass and fail the filter
-    data = make_batch(env, seed=5)
-    want, passed, returns = hand_bc(env, rl_loss, actor, data, filt, k, gamma, 3.0)
+    data = make_batch(model, seed=5)
+    want, passed, returns = hand_bc(model, rl_loss, actor, data, filt, k, gamma, 3.0)
     loss_bc, meta = silp.bc_loss(data.clone())
     torch.testing.assert_close(loss_bc, torch.tensor(want), rtol=1e-5, atol=1e-6)
     mask = silp.bc_filter(data.clone())[: sum(IS_DEMO)]
@@ -158,15 +160,33 @@ def test_bc_term_matches_hand_computation(env, kind, filt, k):
         r_demo, r_pi = silp.lookahead_returns(data.clone())
         torch.testing.assert_close(r_demo[:6], torch.tensor([r[0] for r in returns]), rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(r_pi[:6], torch.tensor([r[1] for r in returns]), rtol=1e-5, atol=1e-5)
+        # the look-ahead reads the stored reward and next state, not the flat observations
+        moved = data.clone()
+        moved["observation"] = torch.zeros_like(moved["observation"])
+        moved["next", "observation"] = torch.zeros_like(moved["next", "observation"])
+        pi = silp._policy_action(data)
+        torch.testing.assert_close(silp.lookahead_returns(moved, pi)[0], r_demo)
     assert float(meta["num_demos"]) == sum(IS_DEMO)
     torch.testing.assert_close(meta["bc_filter_fraction"], torch.tensor(sum(passed) / len(passed)))
 
 
-def test_forward_scales_rl_terms_and_adds_bc(env):
+def test_reward_filter_discounts_with_the_wrapped_loss_gamma(model):
     rl_loss, actor = make_loss("ddpg")
-    silp = SILPLoss(rl_loss, env, filter="none", lambda1=0.25, lambda2=2.0)
+    silp = SILPLoss(rl_loss, model, filter="reward", k=2)
+    silp.make_value_estimator(gamma=0.5)
+    data = make_batch(model, seed=5)
+    r_demo, _ = silp.lookahead_returns(data.clone())
+    for i in range(N):
+        s1 = data["next"].select(*STATE_KEYS)[i : i + 1]
+        want = hand_return(model, actor, data["next", "reward"][i], s1, 2, 0.5)
+        assert r_demo[i].item() == pytest.approx(want, rel=1e-5, abs=1e-5)
+
+
+def test_forward_scales_rl_terms_and_adds_bc(model):
+    rl_loss, actor = make_loss("ddpg")
+    silp = SILPLoss(rl_loss, model, filter="none", lambda1=0.25, lambda2=2.0)
     SoftUpdate(silp.rl_loss, tau=0.01)
-    data = make_batch(env)
+    data = make_batch(model)
     ref = rl_loss(data.clone())
     out = silp(data.clone())
     for key in ("loss_actor", "loss_value"):
@@ -179,7 +199,10 @@ def test_forward_scales_rl_terms_and_adds_bc(env):
     for key in ("bc_mse", "bc_filter_fraction", "num_demos"):
         assert not out[key].requires_grad
     assert set(silp.out_keys) >= {"loss_bc", "loss_actor", "loss_value", "bc_mse"}
-    assert {"is_demo", ("next", "observation"), ("next", "reward")} <= set(SILPLoss(rl_loss, env).in_keys)
+    in_keys = set(SILPLoss(rl_loss, model).in_keys)
+    assert {"is_demo", ("next", "reward"), *STATE_KEYS, *[("next", k) for k in STATE_KEYS]} <= in_keys
+    # the Q-filter reads the critic's inputs, not the named state
+    assert "joint_position" not in set(SILPLoss(rl_loss, filter="q").in_keys)
 
 
 def _grads(params):
@@ -187,10 +210,10 @@ def _grads(params):
 
 
 @pytest.mark.parametrize("kind,filt", [("ddpg", "reward"), ("sac", "q"), ("td3", "q")])
-def test_bc_gradient_reaches_actor_only(env, kind, filt):
+def test_bc_gradient_reaches_actor_only(model, kind, filt):
     rl_loss, _ = make_loss(kind)
-    silp = SILPLoss(rl_loss, env, filter=filt)
-    data = make_batch(env)
+    silp = SILPLoss(rl_loss, model, filter=filt)
+    data = make_batch(model)
     loss_bc, _ = silp.bc_loss(data)
     assert loss_bc > 0
     loss_bc.backward()
@@ -204,11 +227,11 @@ def test_bc_gradient_reaches_actor_only(env, kind, filt):
 
 @pytest.mark.parametrize("filt", ["reward", "q", "none"])
 @pytest.mark.parametrize("demos", ["all_false", "missing"])
-def test_demo_free_batch_gives_zero(env, filt, demos):
+def test_demo_free_batch_gives_zero(model, filt, demos):
     rl_loss, _ = make_loss("sac")
-    silp = SILPLoss(rl_loss, env, filter=filt)
+    silp = SILPLoss(rl_loss, model, filter=filt)
     SoftUpdate(silp.rl_loss, tau=0.01)
-    data = make_batch(env, demos=[False] * N)
+    data = make_batch(model, demos=[False] * N)
     if demos == "missing":
         del data["is_demo"]
     out = silp(data)
@@ -224,7 +247,9 @@ def test_demo_free_batch_gives_zero(env, filt, demos):
 def test_one_optimisation_step(kind):
     env = UR5eReachEnv(num_envs=4, seed=1)
     rl_loss, _ = make_loss(kind)
+    # the env holding the model works as well as the model
     silp = SILPLoss(rl_loss, env, filter="reward", lambda2=2.0)
+    assert silp.model is env.model
     updater = SoftUpdate(silp.rl_loss, tau=0.5)
     optim = torch.optim.Adam(silp.parameters(), lr=1e-2)
     # every trainable tensor of the wrapped loss, nothing else (no target nets, no lambdas)
@@ -248,6 +273,25 @@ def test_one_optimisation_step(kind):
     assert float(out["num_demos"]) == 8
 
 
+def test_soft_update_moves_targets_by_tau(model):
+    rl_loss, _ = make_loss("ddpg")
+    silp = SILPLoss(rl_loss, model, filter="reward")
+    updater = SoftUpdate(silp.rl_loss, tau=0.25)
+    # SoftUpdate on the wrapper finds no target parameters: they belong to the wrapped loss
+    with pytest.raises(RuntimeError, match="target"):
+        SoftUpdate(silp, tau=0.25)
+    source = rl_loss.value_network_params.detach().clone()
+    target = rl_loss.target_value_network_params
+    with torch.no_grad():
+        for p in rl_loss.value_network_params.values(True, True):
+            p.add_(1.0)
+    before = target.detach().clone()
+    updater.step()
+    for key, value in target.items(True, True):
+        want = 0.75 * before[key] + 0.25 * (source[key] + 1.0)
+        torch.testing.assert_close(value.detach(), want)
+
+
 def test_gamma_defaults_to_wrapped_loss():
     rl_loss, _ = make_loss("ddpg")
     silp = SILPLoss(rl_loss, filter="none")
@@ -257,9 +301,9 @@ def test_gamma_defaults_to_wrapped_loss():
     assert SILPLoss(rl_loss, filter="none", gamma=0.7).gamma == 0.7
 
 
-def test_set_keys_forwards_and_rebuilds_in_keys(env):
+def test_set_keys_forwards_and_rebuilds_in_keys(model):
     rl_loss, _ = make_loss("sac")
-    silp = SILPLoss(rl_loss, env)
+    silp = SILPLoss(rl_loss, model)
     silp.set_keys(is_demo="demo_flag", reward="r")
     assert "demo_flag" in silp.in_keys and ("next", "r") in silp.in_keys
     assert rl_loss.tensor_keys.reward == "r"
@@ -267,18 +311,19 @@ def test_set_keys_forwards_and_rebuilds_in_keys(env):
         silp.set_keys(nonsense="x")
 
 
-def test_lambdas_are_schedulable(env):
+def test_lambdas_are_schedulable(model):
     rl_loss, _ = make_loss("ddpg")
-    silp = SILPLoss(rl_loss, env, filter="none")
+    silp = SILPLoss(rl_loss, model, filter="none")
     SoftUpdate(silp.rl_loss, tau=0.01)
+    assert float(silp(make_batch(model))["loss_bc"].detach()) > 0.0
     silp.lambda2 = 0.0
-    assert float(silp(make_batch(env))["loss_bc"].detach()) == 0.0
+    assert float(silp(make_batch(model))["loss_bc"].detach()) == 0.0
 
 
 @pytest.mark.parametrize(
     "kwargs,match",
     [
-        (dict(filter="reward"), "needs env"),
+        (dict(filter="reward"), "needs model"),
         (dict(filter="bogus"), "filter must be one of"),
         (dict(filter="none", k=0), "k must be"),
         (dict(filter="none", k=1.5), "k must be"),
@@ -293,9 +338,9 @@ def test_bad_configuration_raises(kwargs, match):
         SILPLoss(rl_loss, **kwargs)
 
 
-def test_bad_env_and_loss_raise():
+def test_bad_model_and_loss_raise():
     rl_loss, _ = make_loss("ddpg")
-    with pytest.raises(ValueError, match="transition"):
+    with pytest.raises(TypeError, match="TaskModel"):
         SILPLoss(rl_loss, object(), filter="reward")
     with pytest.raises(TypeError, match="LossModule"):
         SILPLoss(nn.Linear(2, 2), filter="none")

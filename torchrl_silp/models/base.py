@@ -262,7 +262,7 @@ class TaskModel(ABC):
         margin = self.motion_margin(h)
         t = torch.linspace(0, 1, n, dtype=config_from.dtype, device=config_from.device).view(n, 1, 1)
         flat_from, flat_delta = config_from.reshape(-1, self.config_dim), delta.reshape(-1, self.config_dim)
-        flat_scene = scene.reshape(-1)
+        flat_scene = scene.reshape(flat_from.shape[0])
         rows = flat_from.shape[0]
         # chunks of rows bound the (samples x rows x spheres) temporaries however large the batch
         step = max(1, _CHUNK // n)

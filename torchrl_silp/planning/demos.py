@@ -195,10 +195,11 @@ def plan_demonstrations(
 
     Returns:
         TensorDict ``[N]`` of transitions with the keys and dtypes of an env
-        rollout (``"observation"``, ``"action"``, ``"goal_q"``, ``("next",
-        "reward")``, the done flags, ``"collision"``, ``"success"``, ...) plus
-        ``"is_demo"`` (bool ``[N, 1]``, True); demonstrations one after the
-        other, each closed by ``("next", "done")``.
+        rollout but its ``"step_count"`` (the named state, ``"observation"``,
+        ``"action"``, ``"goal_joint_position"``, ``("next", "reward")``, the done
+        flags, ``"collision"``, ``"success"``, ...) plus ``"is_demo"`` (bool
+        ``[N, 1]``, True); demonstrations one after the other, each closed by
+        ``("next", "done")``.
 
     Examples:
         >>> import torch
