@@ -1,4 +1,5 @@
-"""Collision geometry: conservative sphere cover, exact sphere-box test, edge subdivision."""
+"""Collision geometry of the UR5e task model: conservative sphere cover (trimesh), exact sphere-box test,
+the per-reason flags against brute force, and the swept motion check (subdivision with a Lipschitz margin)."""
 
 import math
 
@@ -8,8 +9,9 @@ import torch
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from tensordict import TensorDict
 
-from torchrl_silp import CollisionReason, UR5e, UR5eReachEnv, sphere_box_distance
+from torchrl_silp import CollisionReason, UR5e, UR5eReach, sphere_box_distance
 from torchrl_silp.geometry import aabb_from_center, point_box_signed_distance
 
 SETTINGS = settings(max_examples=25, deadline=None, derandomize=True)
@@ -19,8 +21,19 @@ angles = st.tuples(
 
 
 @pytest.fixture(scope="module")
-def env():
-    return UR5eReachEnv(dtype=torch.float64, seed=0)
+def model():
+    return UR5eReach(dtype=torch.float64)
+
+
+def flags_of(model, q, box):
+    """The exact collision bit flags of configurations ``q`` against one box, shape ``q.shape[:-1]``."""
+    flags, tcp = model.collision_flags(q, box)
+    torch.testing.assert_close(tcp, model.robot.fk(q))
+    return flags.squeeze(-1)
+
+
+def scene(box, *batch):
+    return TensorDict(obstacle=box.expand(*batch, 6), batch_size=list(batch))
 
 
 def primitive_mesh(prim) -> trimesh.Trimesh:
@@ -36,8 +49,8 @@ def primitive_mesh(prim) -> trimesh.Trimesh:
 
 @SETTINGS
 @given(q=angles, seed=st.integers(0, 2**16))
-def test_sphere_cover_contains_primitive_surfaces(env, q, seed):
-    robot = env.robot
+def test_sphere_cover_contains_primitive_surfaces(model, q, seed):
+    robot = model.robot
     q3 = torch.tensor(q, dtype=torch.float64)
     rot, pos = robot.frames(q3)
     centres, radii = robot.link_spheres(q3)
@@ -73,18 +86,24 @@ def brute_force_obstacle_margin(centres, radii, box, spacing=0.004):
 
 @settings(max_examples=15, deadline=None, derandomize=True)
 @given(q=angles, cx=st.floats(0.3, 0.7), cy=st.floats(0.1, 0.4))
-def test_obstacle_flag_agrees_with_brute_force(env, q, cx, cy):
+def test_obstacle_flag_agrees_with_brute_force(model, q, cx, cy):
     q3 = torch.tensor(q, dtype=torch.float64)
-    box = aabb_from_center(torch.tensor([cx, cy, 0.15], dtype=torch.float64), env.obstacle_size)
-    centres, radii = env.robot.link_spheres(q3)
+    box = aabb_from_center(torch.tensor([cx, cy, 0.15], dtype=torch.float64), model.obstacle_size)
+    centres, radii = model.robot.link_spheres(q3)
     margin = brute_force_obstacle_margin(centres, radii, box)
-    flag = (env.collision_flags(q3, box) & CollisionReason.OBSTACLE).item() != 0
+    flag = (flags_of(model, q3, box) & CollisionReason.OBSTACLE).item() != 0
     exact = sphere_box_distance(centres, radii, box)
     # within the sampling resolution of the box surface they agree
     assert torch.allclose(exact, margin, atol=0.004 * math.sqrt(3))
     if (margin.abs() > 0.01).all():
         assert flag == bool((margin < 0).any())
     assert flag == bool((exact < 0).any())
+    # the clearance is the exact distance (-radius for a centre inside the box),
+    # and a margin inflates the spheres by that much
+    clearance = model.clearance(q3, box)[0].item()
+    assert clearance == pytest.approx(torch.maximum(exact, -radii).min().item(), abs=1e-9)
+    inflated, _ = model.collision_flags(q3, box, {"obstacle": 0.02})
+    assert bool(inflated.item() & CollisionReason.OBSTACLE) == (clearance < 0.02)
 
 
 @SETTINGS
@@ -106,19 +125,19 @@ def test_point_box_signed_distance_matches_definition(p, c, s):
     assert d == pytest.approx(expected, abs=1e-12)
 
 
-def test_table_and_workspace_and_self_flags(env):
-    robot = env.robot
+def test_table_and_workspace_and_self_flags(model):
+    robot = model.robot
     far_box = torch.tensor([5.0, 6.0, 5.0, 6.0, 5.0, 6.0], dtype=torch.float64)
     g = torch.Generator().manual_seed(0)
     q3 = (torch.rand(4000, 3, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
-    flags = env.collision_flags(q3, far_box).squeeze(-1)
+    flags = flags_of(model, q3, far_box)
     centres, radii = robot.link_spheres(q3)
     names = np.array(robot.sphere_link_names)
     not_base = torch.as_tensor(names != "base_link")
     table = ((centres[..., 2] - radii) < 0)[:, not_base].any(-1)
     assert torch.equal((flags & CollisionReason.TABLE) != 0, table)
     tcp = robot.fk(q3)
-    low, high = torch.tensor(env.WORKSPACE_LOW), torch.tensor(env.WORKSPACE_HIGH)
+    low, high = torch.tensor(UR5eReach.WORKSPACE_LOW), torch.tensor(UR5eReach.WORKSPACE_HIGH)
     out = ~((tcp >= low) & (tcp <= high)).all(-1)
     assert torch.equal((flags & CollisionReason.WORKSPACE) != 0, out)
     grip = torch.as_tensor(names == "tool0")
@@ -127,14 +146,21 @@ def test_table_and_workspace_and_self_flags(env):
     self_hit = (d < radii[grip][:, None] + radii[others][None, :]).flatten(1).any(-1)
     assert torch.equal((flags & CollisionReason.SELF) != 0, self_hit)
     assert self_hit.any() and table.any() and out.any() and (flags == 0).any()
-    assert torch.equal(env.collides(q3, far_box), flags != 0)
+    assert torch.equal(model.collides(q3, far_box), flags != 0)
+    assert torch.equal(model.collides(q3, scene(far_box, 4000)), flags != 0)
+    # the clearance per reason has the sign of the flags
+    clearance = model.clearance(q3, far_box)
+    for bit, name in enumerate(model.collision_reasons):
+        assert torch.equal(clearance[:, bit] < 0, (flags & (1 << bit)) != 0), name
 
 
-def test_home_pose_is_free(env):
+def test_home_pose_is_free(model):
     # UR "home" with the tool down: TCP at (0.49, 0.13, 0.26); the box 0.17 m away in y
-    box = aabb_from_center(torch.tensor([0.3, 0.4, 0.15], dtype=torch.float64), env.obstacle_size)
+    box = aabb_from_center(torch.tensor([0.3, 0.4, 0.15], dtype=torch.float64), model.obstacle_size)
     q = torch.tensor([0.0, -math.pi / 2, math.pi / 2], dtype=torch.float64)
-    assert not env.collides(q, box)
+    assert not model.collides(q, box)
+    # and free with the motion check's margin: a motion can start there
+    assert model.collision_flags(q, box, model.motion_margin())[0].item() == 0
 
 
 @SETTINGS
@@ -144,38 +170,90 @@ def test_home_pose_is_free(env):
     cx=st.floats(0.3, 0.7),
     cy=st.floats(0.1, 0.4),
     step=st.sampled_from([0.01, 0.02, 0.05]),
+    conservative=st.booleans(),
 )
-def test_edge_check_is_subdivision(env, q, dq, cx, cy, step):
-    q_from = torch.tensor(q, dtype=torch.float64)
-    q_to = q_from + torch.tensor(dq, dtype=torch.float64)
-    box = aabb_from_center(torch.tensor([cx, cy, 0.15], dtype=torch.float64), env.obstacle_size)
-    free = env.edge_collision_free(q_from, q_to, box, step_size=step).item()
-    n = max(math.ceil((q_to - q_from).abs().max().item() / step), 1) + 1
-    pts = torch.stack([q_from + t * (q_to - q_from) for t in np.linspace(0, 1, n)])
-    any_hit = env.collides(pts, box).any().item()
-    assert free == (not any_hit)
-    if any(env.collides(torch.stack([q_from, q_to]), box)):
-        assert not free
+def test_motion_check_is_subdivision_with_the_lipschitz_margin(model, q, dq, cx, cy, step, conservative):
+    model.conservative = conservative
+    try:
+        q_from = torch.tensor(q, dtype=torch.float64)
+        q_to = q_from + torch.tensor(dq, dtype=torch.float64)
+        box = aabb_from_center(torch.tensor([cx, cy, 0.15], dtype=torch.float64), model.obstacle_size)
+        free = model.segment_collision_free(q_from[None], q_to[None], scene(box, 1), resolution=step).item()
+        flags, _ = model.motion_collision_flags(q_from, q_to, scene(box), resolution=step)
+        assert free == (flags.item() == 0)
+        n = max(math.ceil((q_to - q_from).abs().max().item() / step), 1) + 1
+        pts = torch.stack([q_from + t * (q_to - q_from) for t in np.linspace(0, 1, n)])
+        margin = model.motion_margin(step)
+        # samples no more than `step` apart, each with the margin L * step / 2 (none when not conservative)
+        for name, bound in model.lipschitz().items():
+            assert margin[name] == (bound * step / 2 if conservative else 0.0)
+        any_hit = (model.collision_flags(pts, box, margin)[0] != 0).any().item()
+        assert free == (not any_hit)
+        if model.collides(torch.stack([q_from, q_to]), box).any():
+            assert not free
+        if free and conservative:
+            # sound: no colliding configuration between the samples either (4x finer, exact)
+            fine = torch.stack([q_from + t * (q_to - q_from) for t in np.linspace(0, 1, 4 * (n - 1) + 1)])
+            assert not model.collides(fine, box).any()
+    finally:
+        model.conservative = True
 
 
-def test_edge_check_batched_equals_single(env):
+def test_subdivision_alone_misses_grazes_the_margin_catches():
+    # why the margin: with exact samples 0.25 rad apart some passed segments collide in between
+    exact = UR5eReach(conservative=False)
+    g = torch.Generator().manual_seed(0)
+    tasks = exact.sample_tasks(512, g)
+    q_from = tasks["joint_position"]
+    q_to = q_from + (torch.rand(512, 3, generator=g) * 2 - 1)
+    sc = tasks.select("obstacle")
+    coarse = exact.segment_collision_free(q_from, q_to, sc, resolution=0.25)
+    n = 4 * 8 + 1  # 0.25 / 4 rad apart at most (the joint steps are below 1 rad)
+    t = torch.linspace(0, 1, n).view(n, 1, 1)
+    hit = exact.collides(q_from + t * (q_to - q_from), sc.unsqueeze(0).expand(n, 512)).any(0)
+    missed = coarse & hit
+    assert missed.any()
+    # the conservative check at the same resolution rejects them all
+    sound = UR5eReach().segment_collision_free(q_from, q_to, sc, resolution=0.25)
+    assert not (sound & hit).any() and not sound[missed].any()
+
+
+def test_motion_check_batched_equals_single(model):
     g = torch.Generator().manual_seed(1)
     q_from = (torch.rand(64, 3, generator=g, dtype=torch.float64) * 2 - 1) * 2
     q_to = q_from + (torch.rand(64, 3, generator=g, dtype=torch.float64) - 0.5)
-    box = aabb_from_center(torch.tensor([0.5, 0.25, 0.15], dtype=torch.float64), env.obstacle_size)
-    batched = env.edge_collision_free(q_from, q_to, box, step_size=0.02)
-    # the batch uses the longest edge's count: at least as fine as each edge alone
+    box = aabb_from_center(torch.tensor([0.5, 0.25, 0.15], dtype=torch.float64), model.obstacle_size)
+    batched = model.segment_collision_free(q_from, q_to, scene(box, 64), resolution=0.02)
+    # each segment is sampled at its own count: the batch is the segments alone
     for i in range(64):
-        alone = env.edge_collision_free(q_from[i], q_to[i], box, step_size=0.02)
-        if not alone:
-            assert not batched[i]
+        alone = model.segment_collision_free(q_from[i : i + 1], q_to[i : i + 1], scene(box, 1), resolution=0.02)
+        assert bool(alone) == bool(batched[i])
     assert batched.any() and (~batched).any()
+    # the padded batch check samples each motion at the longest one's count: at least as fine
+    flags, _ = model.motion_collision_flags(q_from, q_to, scene(box, 64), resolution=0.02)
+    assert ((flags.squeeze(-1) != 0) | batched).all()
 
 
-def test_bad_collision_inputs(env):
+def test_lipschitz_bounds_the_geometry_speed(model):
+    # finite differences at random configurations stay below the bounds
+    bounds = model.lipschitz()
+    assert set(bounds) == set(model.collision_reasons)
+    g = torch.Generator().manual_seed(2)
+    q = (torch.rand(2000, 3, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
+    dq = (torch.rand(2000, 3, generator=g, dtype=torch.float64) * 2 - 1) * 1e-3
+    h = dq.abs().amax(-1, keepdim=True)
+    c0, t0 = model.robot.spheres_and_tcp(q)
+    c1, t1 = model.robot.spheres_and_tcp(q + dq)
+    assert ((c1 - c0).norm(dim=-1) / h).max() <= bounds["obstacle"]
+    assert ((t1 - t0).abs().amax(-1, keepdim=True) / h).max() <= bounds["workspace"]
+
+
+def test_bad_collision_inputs(model):
     with pytest.raises(ValueError, match="obstacle"):
-        env.collides(torch.zeros(3, dtype=torch.float64), torch.zeros(5, dtype=torch.float64))
-    with pytest.raises(ValueError, match="q3"):
-        env.collides(torch.zeros(2, dtype=torch.float64), torch.zeros(6, dtype=torch.float64))
-    with pytest.raises(ValueError, match="step_size"):
-        env.edge_collision_free(torch.zeros(3), torch.ones(3), torch.zeros(6), step_size=0)
+        model.collides(torch.zeros(3, dtype=torch.float64), torch.zeros(5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="config"):
+        model.collides(torch.zeros(2, dtype=torch.float64), torch.zeros(6, dtype=torch.float64))
+    with pytest.raises(TypeError, match="config"):
+        model.collides([0.0, 0.0, 0.0], torch.zeros(6, dtype=torch.float64))
+    with pytest.raises(ValueError, match="resolution"):
+        model.segment_collision_free(torch.zeros(1, 3), torch.ones(1, 3), scene(torch.zeros(6), 1), resolution=0)

@@ -1,4 +1,5 @@
-"""UR5eReachEnv: specs, task sampling, reward / termination / truncation, seeding, collision types."""
+"""UR5eReachEnv (ReachEnv over UR5eReach, CollisionHandling, CatTensors): specs, task sampling,
+reward / termination / truncation, collision types, seeding, partial resets."""
 
 import math
 
@@ -7,7 +8,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-from torchrl_silp import CollisionReason, UR5eReachEnv
+from torchrl_silp import CollisionHandling, CollisionReason, ReachEnv, UR5eReach, UR5eReachEnv
 from torchrl_silp.geometry import in_box
 
 
@@ -17,32 +18,44 @@ def test_check_env_specs(batch_size):
     check_env_specs(env)
 
 
-def test_num_envs_alias():
+def test_num_envs_alias_and_composition():
     assert UR5eReachEnv(num_envs=5).batch_size == (5,)
     assert UR5eReachEnv().batch_size == ()
+    env = UR5eReachEnv(collision_type=1, seed=0)
+    assert isinstance(env.base_env, ReachEnv) and isinstance(env.model, UR5eReach)
+    assert env.model is env.base_env.model and env.collision_type == 1
+    assert UR5eReachEnv(collision_type=None).collision_type is None
+    assert not any(isinstance(t, CollisionHandling) for t in UR5eReachEnv(collision_type=None).transform)
 
 
 def test_sampled_tasks_satisfy_paper_constraints():
     env = UR5eReachEnv(seed=0)
+    model = env.model
     t = env.sample_tasks(2000)
+    assert set(t.keys()) == {"joint_position", "achieved_goal", "obstacle", "desired_goal", "goal_joint_position"}
     centre = (t["obstacle"][:, 0::2] + t["obstacle"][:, 1::2]) / 2
     size = t["obstacle"][:, 1::2] - t["obstacle"][:, 0::2]
-    d1 = (t["tcp"] - centre).norm(dim=-1)
-    d2 = (t["tcp"] - t["goal"]).norm(dim=-1)
-    d3 = (centre - t["goal"]).norm(dim=-1)
+    d1 = (t["achieved_goal"] - centre).norm(dim=-1)
+    d2 = (t["achieved_goal"] - t["desired_goal"]).norm(dim=-1)
+    d3 = (centre - t["desired_goal"]).norm(dim=-1)
     assert (d2 > d1).all() and (d1 > d3).all()
-    low, high = torch.tensor(env.WORKSPACE_LOW), torch.tensor(env.WORKSPACE_HIGH)
-    for p in (t["tcp"], t["goal"]):
+    low, high = torch.tensor(UR5eReach.WORKSPACE_LOW), torch.tensor(UR5eReach.WORKSPACE_HIGH)
+    for p in (t["achieved_goal"], t["desired_goal"]):
         assert ((p >= low) & (p <= high)).all()
-    torch.testing.assert_close(size, torch.tensor(env.OBSTACLE_SIZE).expand_as(size))
+    torch.testing.assert_close(size, torch.tensor(UR5eReach.OBSTACLE_SIZE).expand_as(size))
     assert (centre[:, 0] >= 0.3).all() and (centre[:, 0] <= 0.7).all()
     assert (centre[:, 1] >= 0.1).all() and (centre[:, 1] <= 0.4).all()
     torch.testing.assert_close(centre[:, 2], torch.full((2000,), 0.15))
     # start and goal are collision-free configurations and the goal is their TCP
-    assert not env.collides(t["q"], t["obstacle"]).any()
-    assert not env.collides(t["goal_q"], t["obstacle"]).any()
-    torch.testing.assert_close(env.robot.fk(t["goal_q"]), t["goal"])
-    torch.testing.assert_close(env.robot.fk(t["q"]), t["tcp"])
+    assert not model.collides(t["joint_position"], t["obstacle"]).any()
+    assert not model.collides(t["goal_joint_position"], t["obstacle"]).any()
+    # ... and keep the motion check's margin, so that every motion out of them can be judged
+    margin = model.motion_margin()
+    assert all(m > 0 for m in margin.values())
+    for q in (t["joint_position"], t["goal_joint_position"]):
+        assert (model.collision_flags(q, t["obstacle"], margin)[0] == 0).all()
+    torch.testing.assert_close(model.robot.fk(t["goal_joint_position"]), t["desired_goal"])
+    torch.testing.assert_close(model.robot.fk(t["joint_position"]), t["achieved_goal"])
     # the obstacle region is covered, not a corner of it
     assert centre[:, 0].max() - centre[:, 0].min() > 0.3
 
@@ -50,9 +63,9 @@ def test_sampled_tasks_satisfy_paper_constraints():
 @pytest.mark.parametrize("task_branch", ["front", "any"])
 def test_task_branch(task_branch):
     env = UR5eReachEnv(seed=0, task_branch=task_branch)
-    t = env.sample_tasks(3000)
+    t = env.sample_tasks(1500)
     flipped = []
-    for q, tcp in ((t["q"], t["tcp"]), (t["goal_q"], t["goal"])):
+    for q, tcp in ((t["joint_position"], t["achieved_goal"]), (t["goal_joint_position"], t["desired_goal"])):
         # the TCP in the frame rotated by the pan angle: x < 0 is behind the shoulder
         c, s = torch.cos(-q[:, 0]), torch.sin(-q[:, 0])
         flipped.append(c * tcp[:, 0] - s * tcp[:, 1] < 0)
@@ -64,7 +77,7 @@ def test_task_branch(task_branch):
         assert 0.1 < start_flipped.float().mean() < 0.3
     # the shoulder-flipped pose (pan ~ pi, lift past vertical) is behind, the home-like one in front
     q = torch.tensor([[2.8, -3.0, 0.9], [0.3, -1.0, 0.9]])
-    reach = UR5eReachEnv.reach_along_pan(q, env.robot.fk(q))
+    reach = UR5eReach.reach_along_pan(q, env.model.robot.fk(q))
     assert reach[0] < 0 < reach[1]
     with pytest.raises(ValueError, match="task_branch"):
         UR5eReachEnv(task_branch="back")
@@ -74,32 +87,37 @@ def test_reset_observation_layout():
     env = UR5eReachEnv(num_envs=8, seed=1)
     td = env.reset()
     obs = td["observation"]
-    torch.testing.assert_close(obs[:, 3:6], env.robot.fk(obs[:, :3]))
-    torch.testing.assert_close(obs[:, 12:15], env.robot.fk(td["goal_q"]))
+    fk = env.model.robot.fk
+    torch.testing.assert_close(obs[:, 3:6], fk(obs[:, :3]))
+    torch.testing.assert_close(obs[:, 12:15], fk(td["goal_joint_position"]))
     assert obs.dtype == torch.float32 and obs.shape == (8, 15)
-
-
-def step_with(env, action):
-    td = env.reset() if not hasattr(env, "_last") else env._last
-    td["action"] = action
-    return env.step(td)
-
-
-def _env_at(q, goal_q, obstacle, **kwargs):
-    """An env whose single task is set by hand (the state lives inside the env)."""
-    env = UR5eReachEnv(batch_size=(q.shape[0],), seed=0, **kwargs)
-    td = env.reset()
-    env._q.copy_(q)
-    env._tcp.copy_(env.robot.fk(q))
-    env._goal_q.copy_(goal_q)
-    env._goal.copy_(env.robot.fk(goal_q))
-    env._obstacle.copy_(obstacle)
-    td["observation"] = env._observation()
-    return env, td
+    # the flat observation is the named keys side by side
+    for key, part in (("joint_position", obs[:, :3]), ("achieved_goal", obs[:, 3:6]), ("obstacle", obs[:, 6:12]),
+                      ("desired_goal", obs[:, 12:15])):
+        assert torch.equal(td[key], part)
+    assert torch.equal(td["step_count"], torch.zeros(8, 1, dtype=torch.long))
 
 
 FAR_BOX = torch.tensor([[5.0, 5.2, 5.0, 5.2, 5.0, 5.3]])
 HOME = torch.tensor([[0.0, -math.pi / 2, math.pi / 2]])
+
+
+def _env_at(q, goal_q, obstacle, **kwargs):
+    """A UR5eReachEnv and a tensordict holding the task set by hand (the state lives in the tensordict)."""
+    env = UR5eReachEnv(batch_size=(q.shape[0],), seed=0, **kwargs)
+    td = env.reset()
+    fk = env.model.robot.fk
+    td.update(
+        {
+            "joint_position": q.clone(),
+            "achieved_goal": fk(q),
+            "obstacle": obstacle.expand(q.shape[0], 6).clone(),
+            "desired_goal": fk(goal_q),
+            "goal_joint_position": goal_q.clone(),
+        }
+    )
+    td["observation"] = env.model.observation(td)
+    return env, td
 
 
 def test_reward_success_terminates():
@@ -107,7 +125,7 @@ def test_reward_success_terminates():
     env, td = _env_at(HOME, goal_q, FAR_BOX)
     td["action"] = torch.tensor([[0.8, 0.0, 0.0]])  # 0.1 rad: lands exactly on the goal
     out = env.step(td)["next"]
-    assert out["reward"].item() == env.SUCCESS_REWARD
+    assert out["reward"].item() == env.model.success_reward == 1.0
     assert out["success"].item() and out["terminated"].item() and out["done"].item()
     assert not out["truncated"].item() and not out["collision"].item()
 
@@ -117,24 +135,27 @@ def test_reward_is_minus_distance_otherwise():
     env, td = _env_at(HOME, goal_q, FAR_BOX)
     td["action"] = torch.tensor([[0.3, -0.2, 0.1]])
     out = env.step(td)["next"]
-    tcp = env.robot.fk(HOME + 0.125 * td["action"])
-    expected = -(tcp - env.robot.fk(goal_q)).norm()
+    fk = env.model.robot.fk
+    tcp = fk(HOME + 0.125 * td["action"])
+    expected = -(tcp - fk(goal_q)).norm()
     assert out["reward"].item() == pytest.approx(expected.item(), abs=1e-6)
     assert not out["done"].item()
-    # the pure model functions agree with the step
-    nxt = env.transition(td["observation"], td["action"])
-    torch.testing.assert_close(nxt, out["observation"])
-    torch.testing.assert_close(env.reward(td["observation"], nxt), out["reward"])
+    torch.testing.assert_close(out["observation"][:, :3], HOME + 0.125 * td["action"])
+    # the model's f_s and f_r agree with the step
+    model = env.model
+    nxt = model.transition(td, td["action"])
+    torch.testing.assert_close(model.observation(nxt), out["observation"])
+    torch.testing.assert_close(model.reward(td, nxt), out["reward"])
 
 
 def test_truncation_at_max_steps():
     env, td = _env_at(HOME, HOME + 0.5, FAR_BOX, max_steps=7)
     for i in range(7):
         td["action"] = torch.zeros(1, 3)
-        td = env.step(td)
-        nxt = td["next"]
+        nxt = env.step(td)["next"]
         assert nxt["truncated"].item() == (i == 6)
         assert not nxt["terminated"].item()
+        assert nxt["step_count"].item() == i + 1
         td = nxt.clone()
     assert nxt["done"].item()
 
@@ -144,16 +165,15 @@ def test_actions_are_clipped():
     td["action"] = torch.tensor([[5.0, -3.0, 0.5]])
     out = env.step(td)["next"]
     torch.testing.assert_close(out["observation"][:, :3], HOME + 0.125 * torch.tensor([[1.0, -1.0, 0.5]]))
+    torch.testing.assert_close(out["joint_position"], HOME + 0.125 * torch.tensor([[1.0, -1.0, 0.5]]))
 
 
 def _colliding_setup(collision_type):
     # the TCP right above the box's top face, then one step down into it
-    env = UR5eReachEnv(batch_size=(1,), seed=0)
-    q = HOME.clone()
-    tcp = env.robot.fk(q)[0]
+    tcp = UR5eReach().robot.fk(HOME)[0]
     box = torch.tensor([[tcp[0] - 0.1, tcp[0] + 0.1, tcp[1] - 0.1, tcp[1] + 0.1, 0.0, tcp[2].item() - 0.04]])
-    env, td = _env_at(q, HOME + torch.tensor([[0.9, 0.0, 0.0]]), box, collision_type=collision_type)
-    assert not env.collides(q, box).any()
+    env, td = _env_at(HOME, HOME + torch.tensor([[0.9, 0.0, 0.0]]), box, collision_type=collision_type)
+    assert not env.model.collides(HOME, box).any()
     td["action"] = torch.tensor([[0.0, 1.0, 0.0]])  # shoulder lift lowers the arm
     return env, td
 
@@ -161,19 +181,22 @@ def _colliding_setup(collision_type):
 @pytest.mark.parametrize("collision_type", [0, 1, 2])
 def test_collision_types(collision_type):
     env, td = _colliding_setup(collision_type)
+    model = env.model
     obs = td["observation"].clone()
     out = env.step(td)["next"]
     assert out["collision"].item()
-    assert out["reward"].item() == env.COLLISION_REWARD
+    assert out["reward"].item() == model.collision_reward == -10.0
     assert out["collision_reason"].item() & CollisionReason.OBSTACLE
     if collision_type == 0:
         assert out["terminated"].item() and out["done"].item()
-        torch.testing.assert_close(out["observation"], env.transition(obs, td["action"]))
+        torch.testing.assert_close(out["observation"], model.observation(model.transition(td, td["action"])))
         assert not out["discard"].item()
     else:
         # the arm is put back where it was and the episode goes on
         assert not out["done"].item()
         torch.testing.assert_close(out["observation"], obs)
+        assert torch.equal(out["joint_position"], td["joint_position"])
+        assert torch.equal(out["achieved_goal"], td["achieved_goal"])
         assert out["discard"].item() == (collision_type == 1)
         # and it can move on from there
         td2 = out.clone()
@@ -181,42 +204,70 @@ def test_collision_types(collision_type):
         assert not env.step(td2)["next", "collision"].item()
 
 
+def test_collision_covers_the_segment_not_only_its_end():
+    # a 2 mm cube where a gripper sphere passes halfway through the step: both ends are free
+    action = torch.tensor([[1.0, -1.0, 1.0]])
+    model = UR5eReach()
+    q_end = HOME + model.action_scale * action
+    q_mid = (HOME + q_end) / 2
+    ends = torch.cat([HOME, q_end])
+    centres, radii = model.robot.link_spheres(q_mid[0])
+    # per sphere: how far its centre halfway is from its centres at the ends, less its radius
+    moved = [(centres - model.robot.link_spheres(q[0])[0]).norm(dim=-1) for q in (HOME, q_end)]
+    gap = torch.minimum(*moved) - radii
+    p = centres[gap.argmax()]
+    cube = torch.stack([p - 0.001, p + 0.001], -1).reshape(1, 6)
+    assert not model.collides(ends, cube.expand(2, 6)).any() and model.collides(q_mid, cube).all()
+    for collision_type in (0, 2):
+        env, td = _env_at(HOME, HOME + 0.5, cube, collision_type=collision_type)
+        td["action"] = action
+        out = env.step(td)["next"]
+        assert out["collision"].item() and out["collision_reason"].item() == CollisionReason.OBSTACLE
+    # also without the margin: the samples in between are checked, not only the ends
+    exact = UR5eReach(conservative=False)
+    assert exact.motion_collision_flags(HOME, q_end, TensorDict(obstacle=cube, batch_size=[1]))[0].item()
+
+
 def test_workspace_exit_is_a_collision():
-    env, td = _env_at(HOME, HOME + 0.3, FAR_BOX)
+    model = UR5eReach()
     # raise the TCP above z = 0.6 by lifting the shoulder
     q = HOME.clone()
     for _ in range(20):
         q = q + torch.tensor([[0.0, -0.125, 0.0]])
-        if env.robot.fk(q)[0, 2] > 0.6:
+        if model.robot.fk(q)[0, 2] > 0.6:
             break
-    flags = env.collision_flags(q, FAR_BOX)
+    flags, tcp = model.collision_flags(q, FAR_BOX)
     assert flags.item() & CollisionReason.WORKSPACE
+    torch.testing.assert_close(tcp, model.robot.fk(q))
 
 
 @pytest.mark.parametrize("collision_type", [0, 2])
 def test_workspace_exit_blocked(collision_type):
     # from HOME, lifting the shoulder moves the TCP up and back: walk to the step that leaves the workspace
     env, td = _env_at(HOME, HOME + 0.3, FAR_BOX, workspace_exit="block", collision_type=collision_type)
+    model = env.model
     lift = torch.tensor([[0.0, -1.0, 0.0]])
     for _ in range(40):
-        inside = env.transition(td["observation"], lift)
-        if not in_box(env.robot.fk(env._q + lift * env.ACTION_SCALE), env.workspace_low, env.workspace_high).item():
+        q_next = td["joint_position"] + lift * model.action_scale
+        if not in_box(model.robot.fk(q_next), model.workspace_low, model.workspace_high).item():
             break
         td["action"] = lift
         td = env.step(td)["next"].clone()
     else:
         pytest.fail("the shoulder lift never left the workspace")
-    before = env._q.clone()
+    before = td["joint_position"].clone()
     td["action"] = lift
     out = env.step(td)["next"]
     # not taken: the arm stays, no collision, no termination, reward -distance
-    assert torch.equal(env._q, before)
+    assert torch.equal(out["joint_position"], before)
     assert not out["collision"].item() and not out["terminated"].item()
-    dist = (env._tcp - env._goal).norm(dim=-1, keepdim=True)
+    dist = (out["achieved_goal"] - out["desired_goal"]).norm(dim=-1, keepdim=True)
     torch.testing.assert_close(out["reward"], -dist)
-    # the pure model agrees with the step
-    torch.testing.assert_close(inside, out["observation"])
-    torch.testing.assert_close(env.reward(td["observation"], inside), out["reward"])
+    # the model agrees with the step
+    inside = model.transition(td, lift)
+    assert torch.equal(inside["joint_position"], before)
+    torch.testing.assert_close(model.observation(inside), out["observation"])
+    torch.testing.assert_close(model.reward(td, inside), out["reward"])
     # the default still counts the exit as a collision
     strict, td2 = _env_at(before, HOME + 0.3, FAR_BOX, collision_type=collision_type)
     td2["action"] = lift
@@ -225,11 +276,29 @@ def test_workspace_exit_blocked(collision_type):
         UR5eReachEnv(workspace_exit="clip")
 
 
+@pytest.mark.parametrize("workspace_exit", ["collision", "block"])
+def test_model_step_is_transition_then_outcome(workspace_exit):
+    # states from rollouts (some near the table, the box, the workspace's edge) and large random actions
+    env = UR5eReachEnv(num_envs=64, seed=3, workspace_exit=workspace_exit)
+    model = env.model
+    torch.manual_seed(0)
+    state = env.rollout(20, break_when_any_done=False).select(*model.state_keys).reshape(-1)
+    action = torch.rand(state.shape[0], 3, generator=torch.Generator().manual_seed(0)) * 2.4 - 1.2
+    nxt, reward, collision, success, flags = model.step(state, action)
+    want = model.transition(state, action)
+    for key in model.state_keys:
+        assert torch.equal(nxt[key], want[key])
+    for got, exp in zip((reward, collision, success, flags), model.outcome(state, want)):
+        assert torch.equal(got, exp)
+    # every outcome is exercised: collisions, plain -distance steps
+    assert (reward == model.collision_reward).any() and (reward < 0).any() and (reward > model.collision_reward).any()
+
+
 def test_seeding_gives_identical_rollouts():
     def run(seed):
-        env = UR5eReachEnv(num_envs=16, seed=seed)
+        env = UR5eReachEnv(num_envs=8, seed=seed)
         torch.manual_seed(123)
-        return env.rollout(30, break_when_any_done=False)
+        return env.rollout(20, break_when_any_done=False)
 
     a, b, c = run(5), run(5), run(6)
     assert (a == b).all()
@@ -239,34 +308,45 @@ def test_seeding_gives_identical_rollouts():
 def test_partial_reset_only_touches_masked_envs():
     env = UR5eReachEnv(num_envs=6, seed=0)
     td = env.reset()
-    before = td["observation"].clone()
+    before = td.clone()
     mask = torch.tensor([True, False, True, False, False, False]).unsqueeze(-1)
-    q_before = env.state["q"].clone()
     # as a collector does: the current tensordict plus the "_reset" mask
-    td2 = env.reset(td.clone().set("_reset", mask))
-    after = td2["observation"]
-    changed = (env.state["q"] != q_before).any(-1)
-    assert torch.equal(changed, mask.squeeze(-1))
-    # a collector-style call holding only "_reset" changes the same envs' state only
-    q_before = env.state["q"].clone()
-    env.reset(TensorDict({"_reset": mask}, batch_size=[6]))
-    assert torch.equal((env.state["q"] != q_before).any(-1), mask.squeeze(-1))
-    torch.testing.assert_close(after[~mask.squeeze(-1)], before[~mask.squeeze(-1)])
-    assert not torch.equal(after[mask.squeeze(-1)], before[mask.squeeze(-1)])
+    after = env.reset(td.clone().set("_reset", mask))
+    rows = mask.squeeze(-1)
+    for key in ("observation", "joint_position", "achieved_goal", "obstacle", "desired_goal", "goal_joint_position"):
+        assert torch.equal(after[key][~rows], before[key][~rows]), key
+        changed = (after[key] != before[key]).flatten(1).any(-1)
+        assert torch.equal(changed, rows), key
+    # a reset row is a fresh task
+    torch.testing.assert_close(after["achieved_goal"], env.model.robot.fk(after["joint_position"]))
+    assert not env.model.collides(after["joint_position"], after["obstacle"]).any()
 
 
-def test_collector_runs_with_auto_reset():
+def test_partial_resets_through_a_collector():
     from torchrl.collectors import Collector
 
-    env = UR5eReachEnv(num_envs=8, seed=0, max_steps=10)
+    # type 0: collisions end episodes too, so envs end and restart at different steps
+    env = UR5eReachEnv(num_envs=8, seed=0, max_steps=10, collision_type=0)
     collector = Collector(env, None, frames_per_batch=8 * 25, total_frames=8 * 50)
     batches = list(collector)
     collector.shutdown()
     data = batches[-1]
     assert data.batch_size == (8, 25)
+    nxt = data["next"]
     # episodes end every 10 steps at the latest, and start anew
-    assert data["next", "done"].sum() >= 8 * 2
-    assert (data["next", "truncated"] | data["next", "terminated"]).eq(data["next", "done"]).all()
+    assert nxt["done"].sum() >= 8 * 2
+    assert (nxt["truncated"] | nxt["terminated"]).eq(nxt["done"]).all()
+    done = nxt["done"][:, :-1].squeeze(-1)
+    # some env restarts while another goes on: resets are partial
+    assert (done.any(0) & ~done.all(0)).any()
+    # an env that goes on starts its next step where the last one ended ...
+    for key in ("joint_position", "achieved_goal", "obstacle", "desired_goal", "goal_joint_position"):
+        assert torch.equal(data[key][:, 1:][~done], nxt[key][:, :-1][~done]), key
+    assert torch.equal(data["step_count"][:, 1:][~done], nxt["step_count"][:, :-1][~done])
+    # ... and one that ended starts a fresh task at step 0
+    assert (data["step_count"][:, 1:][done] == 0).all()
+    assert not torch.equal(data["obstacle"][:, 1:][done], nxt["obstacle"][:, :-1][done])
+    torch.testing.assert_close(data["achieved_goal"], env.model.robot.fk(data["joint_position"]))
 
 
 def test_bad_arguments():
@@ -278,10 +358,16 @@ def test_bad_arguments():
         UR5eReachEnv(num_envs=0)
     with pytest.raises(ValueError, match="batch_size"):
         UR5eReachEnv(batch_size=(0,))
+    with pytest.raises(ValueError, match="num_envs or batch_size"):
+        UR5eReachEnv(num_envs=2, batch_size=(2,))
     with pytest.raises(ValueError, match="success_distance"):
         UR5eReachEnv(success_distance=-1.0)
+    with pytest.raises(ValueError, match="motion_resolution"):
+        UR5eReachEnv(motion_resolution=0.0)
     with pytest.raises(TypeError, match="dtype"):
         UR5eReachEnv(dtype=torch.int32)
+    with pytest.raises(TypeError, match="model"):
+        ReachEnv("ur5e")
     env = UR5eReachEnv(num_envs=2, seed=0)
     td = env.reset()
     td["action"] = torch.tensor([[float("nan"), 0, 0], [0, 0, 0]])
@@ -290,19 +376,21 @@ def test_bad_arguments():
     td["action"] = torch.zeros(2, 4)
     with pytest.raises(ValueError, match="action"):
         env.step(td)
-    with pytest.raises(ValueError, match="obs"):
-        env.transition(torch.zeros(2, 14), torch.zeros(2, 3))
 
 
-@pytest.mark.parametrize("workspace_exit", ["collision", "block"])
-def test_transition_reward_is_transition_then_reward(workspace_exit):
-    # states from rollouts (some near the table, the box, the workspace's edge) and large random actions
-    env = UR5eReachEnv(num_envs=64, seed=3, workspace_exit=workspace_exit)
-    obs = env.rollout(20, break_when_any_done=False)["observation"].reshape(-1, 15)
-    action = torch.rand(obs.shape[0], 3, generator=torch.Generator().manual_seed(0)) * 2.4 - 1.2
-    nxt, reward = env.transition_reward(obs, action)
-    want = env.transition(obs, action)
-    torch.testing.assert_close(nxt, want)
-    torch.testing.assert_close(reward, env.reward(obs, want))
-    # every outcome is exercised: collisions, successes are rare, plain -distance steps
-    assert (reward == env.COLLISION_REWARD).any() and (reward < 0).any() and (reward > env.COLLISION_REWARD).any()
+def test_float64_env():
+    env = UR5eReachEnv(num_envs=4, seed=0, dtype=torch.float64)
+    check_env_specs(env)
+    td = env.rollout(5)
+    assert td["observation"].dtype == td["next", "reward"].dtype == td["action"].dtype == torch.float64
+
+
+def test_stateless_step_reads_the_tensordict():
+    # two envs, same state handed in: same result, whatever each env did before
+    a, b = UR5eReachEnv(num_envs=4, seed=0), UR5eReachEnv(num_envs=4, seed=1)
+    td = a.reset()
+    b.rollout(3)
+    td["action"] = torch.rand(4, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    out_a, out_b = a.step(td.clone())["next"], b.step(td.clone())["next"]
+    assert (out_a == out_b).all()
+    assert isinstance(out_a, TensorDict)

@@ -1,4 +1,5 @@
-"""UR5eReachGymEnv: Gymnasium API, registration, seeding, and agreement with the TorchRL env's model."""
+"""UR5eReachGymEnv / ReachGymEnv: Gymnasium API, registration, seeding, and agreement with the TorchRL
+env (step for step) and with the task model."""
 
 import warnings
 
@@ -8,16 +9,32 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
+from tensordict import TensorDict
+
 import torchrl_silp  # noqa: F401  (registers the id)
-from torchrl_silp import CollisionReason, UR5eReachEnv
+from torchrl_silp import CollisionHandling, CollisionReason, UR5eReach, UR5eReachEnv
 from torchrl_silp.envs import ENV_ID, UR5eReachGymEnv
 from torchrl_silp.envs import gym as gym_module
+from torchrl_silp.envs.gym import ReachGymEnv
 
 
 @pytest.fixture(scope="module")
 def model():
-    """An independent TorchRL env whose pure functions are the reference."""
-    return UR5eReachEnv()
+    """An independent task model whose f_s and f_r are the reference."""
+    return UR5eReach()
+
+
+def state_of(obs: np.ndarray) -> TensorDict:
+    """The named state behind a flat UR5e observation (joints, TCP, obstacle, goal)."""
+    obs = torch.from_numpy(obs)
+    return TensorDict(
+        joint_position=obs[:3], achieved_goal=obs[3:6], obstacle=obs[6:12], desired_goal=obs[12:15], batch_size=[]
+    )
+
+
+def collision_type_of(torch_env) -> int:
+    (handling,) = [t for t in torch_env.transform if isinstance(t, CollisionHandling)]
+    return handling.collision_type
 
 
 def run(env, seed, actions):
@@ -51,7 +68,7 @@ def test_registration_is_idempotent():
 def test_make_passes_kwargs():
     env = gym.make(ENV_ID, max_steps=3, collision_type=0)
     assert env.unwrapped.torch_env.max_steps == 3
-    assert env.unwrapped.torch_env.collision_type == 0
+    assert collision_type_of(env.unwrapped.torch_env) == 0
     env.reset(seed=0)
     results = [env.step(np.zeros(3, dtype=np.float32)) for _ in range(3)]
     # a zero action keeps a collision-free start: nothing ends before step 3
@@ -94,8 +111,39 @@ def test_seed_gives_the_torch_env_task():
         obs, info = env.reset(seed=seed)
         td = UR5eReachEnv(seed=seed).reset()
         np.testing.assert_array_equal(obs, td["observation"].numpy())
-        np.testing.assert_array_equal(info["goal_q"], td["goal_q"].numpy())
+        np.testing.assert_array_equal(info["goal_q"], td["goal_joint_position"].numpy())
 
+
+@pytest.mark.parametrize("collision_type", [0, 1, 2])
+def test_steps_match_the_torch_env_step_for_step(collision_type):
+    # the Gymnasium twin and an unbatched UR5eReachEnv, same seed, same actions: same everything
+    gym_env = UR5eReachGymEnv(collision_type=collision_type, max_steps=15)
+    torch_env = UR5eReachEnv(seed=11, collision_type=collision_type, max_steps=15)
+    rng = np.random.default_rng(2)
+    obs, info = gym_env.reset(seed=11)
+    td = torch_env.reset()
+    seen = {"collision": 0, "reset": 0}
+    for _ in range(60):
+        np.testing.assert_array_equal(obs, td["observation"].numpy())
+        action = rng.uniform(-1.2, 1.2, 3).astype(np.float32)
+        obs, reward, terminated, truncated, info = gym_env.step(action)
+        td["action"] = torch.from_numpy(np.clip(action, -1, 1))
+        out = torch_env.step(td)
+        nxt = out["next"]
+        np.testing.assert_array_equal(obs, nxt["observation"].numpy())
+        assert reward == nxt["reward"].item()
+        assert (terminated, truncated) == (nxt["terminated"].item(), nxt["truncated"].item())
+        assert info["collision"] == nxt["collision"].item() and info["discard"] == nxt["discard"].item()
+        assert info["collision_reason"] == CollisionReason.names(int(nxt["collision_reason"].item()))
+        seen["collision"] += info["collision"]
+        if terminated or truncated:
+            # both reset from the same generator state: the next task is the same too
+            obs, info = gym_env.reset()
+            td = torch_env.reset()
+            seen["reset"] += 1
+        else:
+            td = nxt.clone()
+    assert seen["collision"] > 0 and seen["reset"] > 0
 
 @pytest.mark.parametrize("collision_type", [0, 2])
 def test_step_follows_the_torch_model(model, collision_type):
@@ -109,19 +157,20 @@ def test_step_follows_the_torch_model(model, collision_type):
         np.testing.assert_allclose(model.robot.fk(torch.from_numpy(goal_q)).numpy(), obs[12:15], atol=1e-6)
         for _ in range(50):
             action = rng.uniform(-1, 1, 3).astype(np.float32)
-            t_obs, t_action = torch.from_numpy(obs), torch.from_numpy(action)
-            expected = model.transition(t_obs, t_action)
-            reward, collision, success, flags = (x.item() for x in model.outcome(t_obs, expected))
+            state, t_action = state_of(obs), torch.from_numpy(action)
+            expected = model.transition(state, t_action)
+            reward, collision, success, flags = (x.item() for x in model.outcome(state, expected))
             nxt, r, terminated, truncated, info = env.step(action)
             assert r == reward
             assert info["collision"] == collision and info["success"] == success
             assert info["collision_reason"] == CollisionReason.names(flags)
+            assert info["collision_reason"] == [n for b, n in enumerate(model.collision_reasons) if flags >> b & 1]
             if collision and collision_type == 2:
                 # type 2: the arm is put back to the state before the collision
                 np.testing.assert_array_equal(nxt, obs)
                 assert not terminated
             else:
-                np.testing.assert_array_equal(nxt, expected.numpy())
+                np.testing.assert_array_equal(nxt, model.observation(expected).numpy())
                 assert terminated == (success or (collision and collision_type == 0))
             seen["collision" if collision else "free"] += 1
             obs = nxt
@@ -129,6 +178,24 @@ def test_step_follows_the_torch_model(model, collision_type):
                 break
     # both branches were exercised
     assert seen["collision"] > 0 and seen["free"] > 0
+
+
+def test_generic_twin_over_a_model():
+    # ReachGymEnv over any task model: the UR5e model gives the UR5e twin's task and steps
+    env = ReachGymEnv(UR5eReach(), max_steps=5, collision_type=1)
+    ref = UR5eReachGymEnv(max_steps=5, collision_type=1)
+    assert env.action_space == ref.action_space and env.observation_space.shape == (15,)
+    np.testing.assert_array_equal(env.observation_space.low[:3], ref.observation_space.low[:3])
+    assert np.isinf(env.observation_space.low[3:]).all()
+    a, info_a = env.reset(seed=4)
+    b, info_b = ref.reset(seed=4)
+    np.testing.assert_array_equal(a, b)
+    assert env.observation_space.contains(a)
+    for action in np.random.default_rng(0).uniform(-1, 1, (5, 3)).astype(np.float32):
+        out_a, out_b = env.step(action), ref.step(action)
+        np.testing.assert_array_equal(out_a[0], out_b[0])
+        assert out_a[1:4] == out_b[1:4]
+    assert out_a[3]  # truncated after max_steps
 
 
 def test_out_of_range_actions_are_clipped():

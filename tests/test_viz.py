@@ -8,7 +8,7 @@ import torch
 from matplotlib.figure import Figure
 from PIL import Image
 
-from torchrl_silp import UR5e, UR5eReachEnv
+from torchrl_silp import UR5e, UR5eReach, UR5eReachEnv
 from torchrl_silp.viz import arm_polygons, draw_scene, render_rgb, save_rollout_png
 
 Q = [0.3, -1.2, 1.4]
@@ -102,12 +102,15 @@ def test_save_rollout_png_batched(env, tmp_path):
     assert out == tmp_path / "b.png"
     # 2 envs x (one 4-step episode + a 2-step tail) = 4 episodes -> 2 x 2 panels of 4 inches
     assert read_png(out).shape == (400, 400, 3)
-    assert read_png(save_rollout_png(env.robot, td, tmp_path / "c.png", max_panels=3, dpi=50)).shape == (400, 400, 3)
+    # a robot, or a model, or an env holding one
+    for holder, name in ((env.model.robot, "c.png"), (env.model, "e.png")):
+        assert read_png(save_rollout_png(holder, td, tmp_path / name, max_panels=3, dpi=50)).shape == (400, 400, 3)
     assert read_png(save_rollout_png(env, td, tmp_path / "d.png", max_panels=1, dpi=50)).shape == (200, 200, 3)
 
 
 def test_save_rollout_png_unbatched(tmp_path):
     env = UR5eReachEnv(seed=1)
+    assert isinstance(env.model, UR5eReach)
     torch.manual_seed(0)
     td = env.rollout(5)
     assert td.batch_size == (5,)
@@ -122,8 +125,11 @@ def test_save_rollout_png_bad_inputs(env, tmp_path):
         save_rollout_png(object(), td, tmp_path / "x.png")
     with pytest.raises(ValueError, match="max_panels"):
         save_rollout_png(env, td, tmp_path / "x.png", max_panels=0)
-    with pytest.raises(ValueError, match="missing"):
-        save_rollout_png(env, td.exclude(("next", "observation")), tmp_path / "x.png")
+    for key in ("joint_position", "obstacle", ("next", "joint_position"), ("next", "achieved_goal")):
+        with pytest.raises(ValueError, match="missing"):
+            save_rollout_png(env, td.exclude(key), tmp_path / "x.png")
+    # the flat observation is not needed: the named keys are read
+    save_rollout_png(env, td.exclude("observation", ("next", "observation")), tmp_path / "y.png", dpi=20)
     with pytest.raises(TypeError, match="rollout"):
         save_rollout_png(env, {"observation": 1}, tmp_path / "x.png")
 

@@ -217,14 +217,20 @@ class PandaReach(TaskModel):
         far_away = torch.tensor([10.0, 11.0] * 3, **f).repeat(self.num_boxes)
         span = self.task_joint_high - self.task_joint_low
         margin = self.motion_margin()
-        out, have = [], 0
+        out, have, barren = [], 0, 0
         while have < n:
+            if barren >= 100:
+                raise ValueError(
+                    f"sample_tasks: no task found in 100 rounds of draws; motion_resolution={self.motion_resolution} "
+                    "asks start and goal to keep a margin no configuration keeps"
+                )
             m = max(256, 16 * (n - have))
             u = torch.rand(m, 7, generator=generator, device=gdev, dtype=self.dtype).to(self.device)
             q = self.task_joint_low + u * span
             flags, tcp = self.collision_flags(q, far_away, margin)
             keep = (flags == 0).squeeze(-1).nonzero().squeeze(-1)
             if keep.numel() < 2:
+                barren += 1
                 continue
             q, tcp = q[keep], tcp[keep]
             k = 8 * m
@@ -240,6 +246,7 @@ class PandaReach(TaskModel):
             q_pair = q[pick]
             hits = self.collision_flags(q_pair, boxes.unsqueeze(0), margin)[0] & CollisionReason.OBSTACLE
             idx = (hits == 0).squeeze(-1).all(0).nonzero().squeeze(-1)[: n - have]
+            barren = barren + 1 if idx.numel() == 0 else 0
             if idx.numel():
                 out.append(
                     TensorDict(

@@ -277,8 +277,13 @@ class UR5eReach(TaskModel):
         far_away = torch.tensor([10.0, 11.0, 10.0, 11.0, 10.0, 11.0], **f)  # a box nothing reaches
         span = self.task_joint_high - self.task_joint_low
         margin = self.motion_margin()
-        out, have = [], 0
+        out, have, barren = [], 0, 0
         while have < n:
+            if barren >= 100:
+                raise ValueError(
+                    f"sample_tasks: no task found in 100 rounds of draws; motion_resolution={self.motion_resolution} "
+                    "asks start and goal to keep a margin no configuration keeps"
+                )
             m = max(256, 16 * (n - have))
             q = self.task_joint_low + torch.rand(m, 3, generator=generator, device=gdev, dtype=self.dtype).to(self.device) * span
             flags, tcp = self.collision_flags(q, far_away, margin)
@@ -287,6 +292,7 @@ class UR5eReach(TaskModel):
                 ok = ok & (self.reach_along_pan(q, tcp) > 0).unsqueeze(-1)
             keep = ok.squeeze(-1).nonzero().squeeze(-1)
             if keep.numel() < 2:
+                barren += 1
                 continue
             q, tcp = q[keep], tcp[keep]
             k = 8 * m
@@ -305,6 +311,7 @@ class UR5eReach(TaskModel):
             hits = self.collision_flags(q_pair, box.unsqueeze(0), margin)[0] & CollisionReason.OBSTACLE
             ok = (hits == 0).squeeze(-1).all(0)
             idx = ok.nonzero().squeeze(-1)[: n - have]
+            barren = barren + 1 if idx.numel() == 0 else 0
             if idx.numel():
                 out.append(
                     TensorDict(
