@@ -17,6 +17,8 @@ import pytest
 import torch
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
+from torchrl_silp.data import EpisodeAssembler
+
 RECIPES = Path(__file__).parents[1] / "recipes"
 
 # seconds-long runs: 4 envs, 100 transitions per collector batch, a few gradient steps
@@ -124,8 +126,9 @@ def test_table1_baselines_train(tmp_path, method):
     interaction = load_buffer(ckpt / "buffers" / "interaction")
     if method == "sac_her":
         # hindsight relabelling stores whole episodes only: the unfinished ones wait in the checkpoint
-        pending = torch.load(ckpt / "", weights_only=False) if (ckpt / "").exists() else None
-        n_pending = 0 if pending is None else pending.batch_size.numel()
+        assembler = EpisodeAssembler()
+        assembler.load_state_dict(torch.load(ckpt / "state.pt", weights_only=False)["assembler"])
+        n_pending = assembler.num_pending
         assert len(interaction) + n_pending == 300
         assert bool(interaction.storage[len(interaction) - 1]["next", "done"])
         # no update before the first episode ended (the first 100-frame batch ends none: 25 steps of 50)
