@@ -92,9 +92,9 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
         demos_added: number of demo transitions stored (including overwritten ones).
 
     Examples:
-        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl_silp import ReachEnv, UR5eReach
         >>> from torchrl_silp.data import DemoReplayBuffer
-        >>> env = UR5eReachEnv(num_envs=4, seed=0)
+        >>> env = ReachEnv(UR5eReach(), num_envs=4, seed=0)
         >>> episodes = env.rollout(50, break_when_any_done=False)
         >>> demos = DemoReplayBuffer(env.model, capacity=10_000, batch_size=32)
         >>> _ = demos.extend(episodes)
@@ -235,9 +235,11 @@ class MixedReplay:
         device: where sampled batches are returned (default: where they are stored).
 
     Examples:
-        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl.envs import Compose, TransformedEnv
+        >>> from torchrl_silp import CollisionHandling, ReachEnv, UR5eReach
+        >>> model = UR5eReach()
+        >>> env = TransformedEnv(ReachEnv(model, num_envs=4, seed=0), Compose(CollisionHandling(2), model.observation_transform()))
         >>> from torchrl_silp.data import DemoReplayBuffer, MixedReplay
-        >>> env = UR5eReachEnv(num_envs=4, seed=0)
         >>> episodes = env.rollout(50, break_when_any_done=False)
         >>> mixed = MixedReplay(DemoReplayBuffer(env.model), demo_fraction=0.25, batch_size=64)
         >>> _ = mixed.extend(episodes)

@@ -43,14 +43,14 @@ class GoalRelabelingReplayBuffer(HERReplayBuffer):
         **kwargs: forwarded to :class:`~torchrl.data.HERReplayBuffer`.
 
     Examples:
-        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl_silp import ReachEnv, UR5eReach
         >>> from torchrl_silp.data import GoalRelabelingReplayBuffer
-        >>> env = UR5eReachEnv(num_envs=4, seed=0, max_steps=10)
+        >>> env = ReachEnv(UR5eReach(), num_envs=4, seed=0, max_steps=10)
         >>> episodes = env.rollout(10).reshape(-1)  # env-major: each env's episode is contiguous
         >>> rb = GoalRelabelingReplayBuffer(env.model, capacity=100, her_ratio=1.0)
         >>> _ = rb.extend(episodes)
         >>> batch = rb.sample(8)
-        >>> bool((batch["observation"][:, 12:15] == batch["desired_goal"]).all())
+        >>> bool((batch["observation"] == env.model.observation(batch)).all())  # rebuilt with the new goals
         True
     """
 

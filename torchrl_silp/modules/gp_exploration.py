@@ -365,7 +365,7 @@ class GPGuidedExploration(TensorDictModuleBase):
 
     Args:
         model: the :class:`~torchrl_silp.models.TaskModel` the env steps (e.g.
-            ``env.model`` of a :class:`~torchrl_silp.UR5eReachEnv`). Kept as a plain
+            ``env.model`` of an env holding one). Kept as a plain
             reference, not a sub-module: ``.to()`` on the module does not move it.
 
     Keyword Args:
@@ -399,11 +399,12 @@ class GPGuidedExploration(TensorDictModuleBase):
         >>> from torchrl.envs import Compose, InitTracker, TransformedEnv
         >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
         >>> from torchrl.modules import Actor
-        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl_silp import CollisionHandling, ReachEnv, UR5eReach
         >>> from torchrl_silp.modules import GPGuidedExploration
-        >>> base = UR5eReachEnv(num_envs=4, seed=0, collision_type=2)
-        >>> gp = GPGuidedExploration(base.model, generator=torch.Generator().manual_seed(0))
-        >>> env = TransformedEnv(base, Compose(InitTracker(), gp.make_tensordict_primer()))
+        >>> model = UR5eReach()
+        >>> gp = GPGuidedExploration(model, generator=torch.Generator().manual_seed(0))
+        >>> env = TransformedEnv(ReachEnv(model, num_envs=4, seed=0), Compose(
+        ...     CollisionHandling(2), model.observation_transform(), InitTracker(), gp.make_tensordict_primer()))
         >>> _ = torch.manual_seed(0)
         >>> actor = Actor(torch.nn.Sequential(torch.nn.Linear(15, 3), torch.nn.Tanh()), in_keys=["observation"])
         >>> policy = TensorDictSequential(actor, gp)

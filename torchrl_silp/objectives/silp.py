@@ -98,9 +98,11 @@ class SILPLoss(LossModule):
         >>> from tensordict import TensorDict
         >>> from torchrl.modules import Actor, ValueOperator
         >>> from torchrl.objectives import DDPGLoss, SoftUpdate
-        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl.envs import Compose, TransformedEnv
+        >>> from torchrl_silp import CollisionHandling, ReachEnv, UR5eReach
+        >>> model = UR5eReach()
+        >>> env = TransformedEnv(ReachEnv(model, num_envs=8, seed=0), Compose(CollisionHandling(2), model.observation_transform()))
         >>> from torchrl_silp.objectives import SILPLoss
-        >>> env = UR5eReachEnv(num_envs=8, seed=0)
         >>> actor = Actor(nn.Sequential(nn.Linear(15, 3), nn.Tanh()), in_keys=["observation"])
         >>> class Critic(nn.Module):
         ...     def __init__(self):

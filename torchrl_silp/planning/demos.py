@@ -64,9 +64,9 @@ def paths_to_demonstrations(
 
     Examples:
         >>> import torch
-        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl_silp import ReachEnv, UR5eReach
         >>> from torchrl_silp.planning import ExperienceRoadmap, roadmap_paths
-        >>> env = UR5eReachEnv(num_envs=2, seed=0)
+        >>> env = ReachEnv(UR5eReach(), num_envs=2, seed=0)
         >>> roadmap = ExperienceRoadmap(env.model, env.rollout(20, break_when_any_done=False))
         >>> ep, s, g = roadmap.queries(4, torch.Generator().manual_seed(0))
         >>> demos = paths_to_demonstrations(env.model, roadmap, ep, roadmap_paths(roadmap, ep, s, g))
@@ -203,8 +203,8 @@ def plan_demonstrations(
 
     Examples:
         >>> import torch
-        >>> from torchrl_silp import UR5eReachEnv
-        >>> env = UR5eReachEnv(num_envs=4, seed=0)
+        >>> from torchrl_silp import ReachEnv, UR5eReach
+        >>> env = ReachEnv(UR5eReach(), num_envs=4, seed=0)
         >>> episodes = env.rollout(50, break_when_any_done=False)
         >>> demos = plan_demonstrations(env.model, episodes, generator=torch.Generator().manual_seed(0))
         >>> bool(demos["is_demo"].all()), bool((demos["action"].abs() <= 1).all())

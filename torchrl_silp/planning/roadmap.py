@@ -122,8 +122,8 @@ class ExperienceRoadmap:
         colliding: bool ``[E, N, N]``: checked edges that failed it.
 
     Examples:
-        >>> from torchrl_silp import UR5eReachEnv
-        >>> env = UR5eReachEnv(num_envs=2, seed=0)
+        >>> from torchrl_silp import ReachEnv, UR5eReach
+        >>> env = ReachEnv(UR5eReach(), num_envs=2, seed=0)
         >>> episodes = env.rollout(20, break_when_any_done=False)
         >>> roadmap = ExperienceRoadmap(env.model, episodes, d=0.15)
         >>> roadmap.config.shape[0], roadmap.adjacency.shape == roadmap.distance.shape

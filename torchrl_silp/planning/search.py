@@ -343,10 +343,10 @@ def roadmap_paths(
 
     Examples:
         >>> import torch
-        >>> from torchrl_silp import UR5eReachEnv
+        >>> from torchrl_silp import ReachEnv, UR5eReach
         >>> from torchrl_silp.planning import ExperienceRoadmap
-        >>> env = UR5eReachEnv(num_envs=2, seed=0)
-        >>> roadmap = ExperienceRoadmap(env, env.rollout(20, break_when_any_done=False), lazy=True)
+        >>> env = ReachEnv(UR5eReach(), num_envs=2, seed=0)
+        >>> roadmap = ExperienceRoadmap(env.model, env.rollout(20, break_when_any_done=False), lazy=True)
         >>> ep, s, g = roadmap.queries(4, torch.Generator().manual_seed(0))
         >>> exact = roadmap_paths(roadmap, ep, s, g)
         >>> greedy = roadmap_paths(roadmap, ep, s, g, method="greedy")
