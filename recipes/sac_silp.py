@@ -57,7 +57,7 @@ def train(cfg: DictConfig) -> dict:
     averaged = make_averaged_actor(actor, decay) if decay is not None else None
     evaluated = actor if averaged is None else averaged.module
 
-    counters = {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0,
+    counters = {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0, "swept_collisions": 0,
                 "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None}
     history, logger_state = [], None
     resumed = cfg.resume and utils.checkpoint_exists(ckpt_dir)
@@ -138,6 +138,7 @@ def train(cfg: DictConfig) -> dict:
         counters["frames"] += batch.numel()
         counters["episodes"] += int(batch["next", "done"].sum())
         counters["collisions"] += int(batch["next", "collision"].sum())
+        counters["swept_collisions"] += int(batch["next", "swept_collision"].sum())
         finished = assembler.push(batch) if cfg.silp.demos or her else None
         with timeit("rb - extend"):
             if not her:
@@ -155,7 +156,8 @@ def train(cfg: DictConfig) -> dict:
                     counters["updates"] += 1
         counters["train_wall_s"] += time.perf_counter() - tick
         counters["planning_s"] = buffers.demo_buffer.planning_time
-        metrics = {"train/collisions": counters["collisions"], "train/episodes": counters["episodes"],
+        metrics = {"train/collisions": counters["collisions"], "train/swept_collisions": counters["swept_collisions"],
+                   "train/episodes": counters["episodes"],
                    "train/demos": len(buffers.demo_buffer), "time/train_wall_s": counters["train_wall_s"]}
         ended = batch["next", "done"]
         if ended.any():

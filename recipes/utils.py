@@ -347,6 +347,8 @@ def summarize(cfg, counters: dict, final: dict, demos_stored: int) -> dict:
         "evaluated_actor": "online" if cfg.eval.actor_average_decay is None
         else f"average (decay {cfg.eval.actor_average_decay})",
         "test_collision_rate": final["collision_rate"], "collisions_during_training": counters["collisions"],
+        # collisions of a motion whose reached state is free: what a check of the reached state alone let pass
+        "swept_collisions_during_training": counters.get("swept_collisions", 0),
         "episodes": counters["episodes"], "frames": counters["frames"], "updates": counters["updates"],
         "train_wall_s": counters["train_wall_s"], "planning_s": counters["planning_s"],
         "planning_share": counters["planning_s"] / max(counters["train_wall_s"], 1e-9),

@@ -223,9 +223,23 @@ def test_collision_covers_the_segment_not_only_its_end():
         td["action"] = action
         out = env.step(td)["next"]
         assert out["collision"].item() and out["collision_reason"].item() == CollisionReason.OBSTACLE
+        # a collision a check of the reached state alone would have let pass
+        assert out["swept_collision"].item()
     # also without the margin: the samples in between are checked, not only the ends
     exact = UR5eReach(conservative=False)
     assert exact.motion_collision_flags(HOME, q_end, TensorDict(obstacle=cube, batch_size=[1]))[0].item()
+
+
+def test_swept_collisions_are_the_collisions_whose_reached_state_is_free():
+    model = UR5eReach()
+    env = ReachEnv(model, num_envs=64, seed=5)
+    torch.manual_seed(5)
+    td = env.rollout(50, break_when_any_done=False)
+    nxt = td["next"]
+    end_collides = model.collides(nxt["joint_position"], nxt.select("obstacle"))
+    collision, swept = nxt["collision"].squeeze(-1), nxt["swept_collision"].squeeze(-1)
+    assert torch.equal(swept, collision & ~end_collides)
+    assert swept.any() and (collision & ~swept).any()
 
 
 def test_workspace_exit_is_a_collision():

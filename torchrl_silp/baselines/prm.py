@@ -559,6 +559,7 @@ def _demonstrations(
             model.goal_config_key: goal_q,
             "reward": reward[b, t],
             "collision": collision[b, t].unsqueeze(-1),
+            "swept_collision": false.clone(),  # kept episodes succeeded, and a collision ends one
             "success": succ,
             "discard": false.clone(),
             "collision_reason": flags[b, t],
@@ -574,6 +575,7 @@ def _demonstrations(
             model.goal_config_key: goal_q.clone(),
             # flags of the state a step starts from: a demo state is never terminal or colliding
             "collision": false.clone(),
+            "swept_collision": false.clone(),
             "success": false.clone(),
             "discard": false.clone(),
             "collision_reason": torch.zeros(N, 1, dtype=flags.dtype, device=device),

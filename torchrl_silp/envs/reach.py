@@ -42,7 +42,9 @@ class ReachEnv(EnvBase):
     moves the configuration by the action through the model (f_s), scores the
     motion (f_r: the collision test covers the segment moved along) and reports
     ``("next", "collision")``, ``"success"`` and ``"collision_reason"``. The env
-    itself only *reports* collisions: the arm moves into the colliding state and
+    itself only *reports* collisions (``("next", "swept_collision")`` marks the
+    collisions of a motion whose end configuration is free: the ones a check of
+    the reached state alone would have let pass): the arm moves into the colliding state and
     the episode goes on; :class:`~torchrl_silp.transforms.CollisionHandling`
     applies the paper's type 0/1/2 handling. Success terminates, ``max_steps``
     truncates.
@@ -159,6 +161,7 @@ class ReachEnv(EnvBase):
             {
                 "step_count": torch.zeros(*batch, 1, dtype=torch.long, device=device),
                 "collision": false,
+                "swept_collision": false.clone(),
                 "success": false.clone(),
                 "collision_reason": torch.zeros(*batch, 1, dtype=torch.uint8, device=device),
                 "done": false.clone(),
@@ -177,6 +180,8 @@ class ReachEnv(EnvBase):
         model = self.model
         state = tensordict.select(*model.state_keys)
         nxt, reward, collision, success, flags = model.step(state, action.to(self.dtype))
+        # collisions of the motion only: the reached configuration itself is free
+        end_free = model.collision_flags(nxt.get(model.config_key), nxt.select(*model.scene_keys))[0] == 0
         steps = tensordict.get("step_count") + 1
         terminated = success
         truncated = (steps >= self.max_steps) & ~terminated
@@ -186,6 +191,7 @@ class ReachEnv(EnvBase):
                 "step_count": steps,
                 "reward": reward,
                 "collision": collision,
+                "swept_collision": collision & end_free,
                 "success": success,
                 "collision_reason": flags,
                 "done": terminated | truncated,

@@ -170,6 +170,7 @@ class TaskModel(ABC):
         b = tuple(batch_size)
         return Composite(
             collision=Binary(n=1, shape=(*b, 1), dtype=torch.bool, device=device),
+            swept_collision=Binary(n=1, shape=(*b, 1), dtype=torch.bool, device=device),
             success=Binary(n=1, shape=(*b, 1), dtype=torch.bool, device=device),
             collision_reason=Bounded(
                 low=0, high=2 ** max(len(self.collision_reasons), 1) - 1, shape=(*b, 1), dtype=torch.uint8, device=device

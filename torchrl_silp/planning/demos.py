@@ -124,6 +124,8 @@ def paths_to_demonstrations(
             model.goal_config_key: goal_q[idx],
             "reward": reward[idx],
             "collision": collision[idx],
+            # a demonstration has no colliding step (those are dropped above)
+            "swept_collision": false.clone(),
             "success": success,
             "discard": false.clone(),
             "collision_reason": flags[idx],
@@ -139,6 +141,7 @@ def paths_to_demonstrations(
             model.goal_config_key: goal_q[idx],
             # flags of the state a step starts from: a demo state is never terminal or colliding
             "collision": false.clone(),
+            "swept_collision": false.clone(),
             "success": false.clone(),
             "discard": false.clone(),
             "collision_reason": torch.zeros(N, 1, dtype=flags.dtype, device=device),
