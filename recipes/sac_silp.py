@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import schema  # noqa: E402
 import utils  # noqa: E402
 
-from torchrl_silp.data import EpisodeAssembler, cut_episodes  # noqa: E402
+from torchrl_silp.data import EpisodeAssembler  # noqa: E402
 from torchrl_silp.eval import evaluate  # noqa: E402
 from torchrl_silp.models import UR5eReach  # noqa: E402
 from torchrl_silp.modules import make_averaged_actor  # noqa: E402
@@ -57,31 +57,9 @@ def train(cfg: DictConfig) -> dict:
     averaged = make_averaged_actor(actor, decay) if decay is not None else None
     evaluated = actor if averaged is None else averaged.module
 
-    counters = {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0, "swept_collisions": 0,
-                "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None}
-    history, logger_state = [], None
     resumed = cfg.resume and utils.checkpoint_exists(ckpt_dir)
-    if resumed:
-        state = utils.load_checkpoint(ckpt_dir, buffers)
-        loss.load_state_dict(state["loss"])
-        for name, opt in optimizers.items():
-            opt.load_state_dict(state["optimizers"][name])
-        if averaged is not None:
-            if state.get("averaged_actor") is None:
-                raise ValueError("eval.actor_average_decay is set but the checkpoint holds no averaged actor: "
-                                 "resume with the config the run was started with")
-            averaged.load_state_dict(state["averaged_actor"])
-        counters, history, logger_state = state["counters"], state["history"], state["logger"]
-        assembler.load_state_dict(state["assembler"])
-        torch.set_rng_state(state["torch_rng"])
-        env.base_env.rng.set_state(state["env_rng"])
-        # the collector starts new episodes: plan (and store) what was left unfinished
-        leftover = assembler.flush()
-        if leftover is not None and her:
-            buffers.extend(cut_episodes(leftover))
-        if leftover is not None and cfg.silp.demos:
-            buffers.demo_buffer.extend(leftover)
-        print(f"resumed from {ckpt_dir}: {counters['frames']} frames, {len(buffers)} transitions in the buffers")
+    counters, history, logger_state = utils.restore(ckpt_dir, cfg, loss, optimizers, averaged, buffers, assembler,
+                                                    env) if resumed else (utils.new_counters(), [], None)
 
     logger = None
     if cfg.logger.backend:
@@ -91,13 +69,8 @@ def train(cfg: DictConfig) -> dict:
             logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
 
     def checkpoint():
-        utils.save_checkpoint(ckpt_dir, {
-            "loss": loss.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-            "averaged_actor": averaged.state_dict() if averaged is not None else None,
-            "counters": dict(counters), "history": list(history), "assembler": assembler.state_dict(),
-            "logger": logger.state_dict() if hasattr(logger, "state_dict") else None,
-            "torch_rng": torch.get_rng_state(), "env_rng": env.base_env.rng.get_state(),
-        }, buffers)
+        utils.save_checkpoint(ckpt_dir, utils.training_state(loss, optimizers, averaged, counters, history, assembler,
+                                                             logger, env), buffers)
 
     def run_evaluation(return_rollout=False):
         kwargs = dict(n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, model=model, max_steps=cfg.env.max_steps,

@@ -27,7 +27,7 @@ from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
-from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, transition_keys
+from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
 from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ
 
@@ -270,6 +270,49 @@ def _checkpoint_dir(path: Path) -> Path | None:
         if (candidate / "state.pt").exists():
             return candidate
     return None
+
+
+def new_counters() -> dict:
+    return {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0, "swept_collisions": 0,
+            "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None}
+
+
+def training_state(loss, optimizers, averaged, counters, history, assembler, logger, env) -> dict:
+    """What a checkpoint holds besides the buffers."""
+    return {
+        "loss": loss.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+        "averaged_actor": averaged.state_dict() if averaged is not None else None,
+        "counters": dict(counters), "history": list(history), "assembler": assembler.state_dict(),
+        "logger": logger.state_dict() if hasattr(logger, "state_dict") else None,
+        "torch_rng": torch.get_rng_state(), "env_rng": env.base_env.rng.get_state(),
+    }
+
+
+def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, assembler, env) -> tuple:
+    """Load a checkpoint into the run's objects: ``(counters, history, logger_state)``.
+
+    The collector starts new episodes: the unfinished ones of the checkpoint are planned (and, for
+    hindsight relabelling, stored as truncated episodes) now.
+    """
+    state = load_checkpoint(path, buffers)
+    loss.load_state_dict(state["loss"])
+    for name, opt in optimizers.items():
+        opt.load_state_dict(state["optimizers"][name])
+    if averaged is not None:
+        if state.get("averaged_actor") is None:
+            raise ValueError("eval.actor_average_decay is set but the checkpoint holds no averaged actor: "
+                             "resume with the config the run was started with")
+        averaged.load_state_dict(state["averaged_actor"])
+    assembler.load_state_dict(state["assembler"])
+    torch.set_rng_state(state["torch_rng"])
+    env.base_env.rng.set_state(state["env_rng"])
+    leftover = assembler.flush()
+    if leftover is not None and cfg.replay_buffer.her:
+        buffers.extend(cut_episodes(leftover))
+    if leftover is not None and cfg.silp.demos:
+        buffers.demo_buffer.extend(leftover)
+    print(f"resumed from {path}: {state['counters']['frames']} frames, {len(buffers)} transitions in the buffers")
+    return state["counters"], state["history"], state["logger"]
 
 
 def load_checkpoint(path: Path, buffers: MixedReplay) -> dict:
