@@ -35,6 +35,7 @@ class _ModelTransform(Transform):
             raise RuntimeError(
                 f"{type(self).__name__} needs a task model: pass model=... or use it on an env whose base env has .model"
             )
+        self._model = model  # resolving the parent builds a container each time: once is enough
         return model
 
 
