@@ -8,6 +8,7 @@ from torchrl_silp.models.base import (
     TaskModel,
     as_model,
 )
+from torchrl_silp.models.arm import ArmReach
 from torchrl_silp.models.panda import PandaReach
 from torchrl_silp.models.ur5e import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach
 
@@ -29,6 +30,7 @@ def make_model(name: str, **kwargs) -> TaskModel:
 __all__ = [
     "TaskModel",
     "as_model",
+    "ArmReach",
     "UR5eReach",
     "PandaReach",
     "TASK_MODELS",

@@ -7,21 +7,18 @@ import math
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_silp.geometry import CollisionReason, aabb_from_center, in_box
-from torchrl_silp.models.base import TaskModel, _check_tensor
+from torchrl_silp.geometry import CollisionReason, in_box
+from torchrl_silp.models.arm import ArmReach
+from torchrl_silp.models.base import _check_tensor
 from torchrl_silp.robot import UR5e
 
 __all__ = ["UR5eReach", "TASK_BRANCHES", "WORKSPACE_EXIT_MODES"]
 
 WORKSPACE_EXIT_MODES = ("collision", "block")
 TASK_BRANCHES = ("front", "any")
-# Sampled Lipschitz maxima are scaled by this: the sampled maximum of a smooth
-# function over the joint box sits within a few percent of its supremum.
-_SAFETY = 1.25
-_LIPSCHITZ: dict = {}
 
 
-class UR5eReach(TaskModel):
+class UR5eReach(ArmReach):
     """Reach a goal with a UR5e around a box: the paper's task as a :class:`TaskModel`.
 
     Three active joints (shoulder_pan, shoulder_lift, elbow; the wrist keeps
@@ -56,10 +53,8 @@ class UR5eReach(TaskModel):
         (True, torch.Size([4, 1]))
     """
 
+    robot_class = UR5e
     config_dim = 3
-    goal_dim = 3
-    scene_shapes = {"obstacle": (6,)}
-    collision_reasons = ("obstacle", "table", "self", "workspace")
     action_scale = 0.125  # rad per action unit
     WORKSPACE_LOW = (0.0, -0.3, 0.0)
     WORKSPACE_HIGH = (0.8, 0.8, 0.6)
@@ -85,58 +80,24 @@ class UR5eReach(TaskModel):
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
     ):
-        super().__init__(
-            success_distance=success_distance, motion_resolution=motion_resolution,
-            conservative=conservative, device=device, dtype=dtype,
-        )
         if workspace_exit not in WORKSPACE_EXIT_MODES:
             raise ValueError(f"workspace_exit must be one of {WORKSPACE_EXIT_MODES}, got {workspace_exit!r}")
         if task_branch not in TASK_BRANCHES:
             raise ValueError(f"task_branch must be one of {TASK_BRANCHES}, got {task_branch!r}")
         if not isinstance(compile_collision, bool):
             raise TypeError(f"compile_collision must be a bool, got {compile_collision!r}")
-        if robot is None:
-            robot = UR5e(device=self.device, dtype=dtype)
-        elif not isinstance(robot, UR5e):
-            raise TypeError(f"robot must be a torchrl_silp.UR5e, got {type(robot).__name__}")
-        self.robot = robot.to(device=self.device, dtype=dtype)
+        super().__init__(
+            robot, num_boxes=1, success_distance=success_distance, motion_resolution=motion_resolution,
+            conservative=conservative, device=device, dtype=dtype,
+        )
         self.workspace_exit = workspace_exit
         self.task_branch = task_branch
         self.compile_collision = compile_collision
-        self._make_tensors()
         self._kernel = self._collision_kernel
         if compile_collision:
             self._kernel = torch.compile(self._collision_kernel, dynamic=True)
 
-    def _make_tensors(self) -> None:
-        f = dict(device=self.device, dtype=self.dtype)
-        self.workspace_low = torch.tensor(self.WORKSPACE_LOW, **f)
-        self.workspace_high = torch.tensor(self.WORKSPACE_HIGH, **f)
-        self.obstacle_size = torch.tensor(self.OBSTACLE_SIZE, **f)
-        self.obstacle_center_low = torch.tensor(self.OBSTACLE_CENTER_LOW, **f)
-        self.obstacle_center_high = torch.tensor(self.OBSTACLE_CENTER_HIGH, **f)
-        self.task_joint_low = torch.tensor(self.TASK_JOINT_LOW, **f)
-        self.task_joint_high = torch.tensor(self.TASK_JOINT_HIGH, **f)
-
-    def to(self, device) -> "UR5eReach":
-        super().to(device)
-        self.robot.to(device=self.device)
-        self._make_tensors()
-        return self
-
-    @property
-    def config_low(self) -> torch.Tensor:
-        return self.robot.joint_low
-
-    @property
-    def config_high(self) -> torch.Tensor:
-        return self.robot.joint_high
-
     # ------------------------------------------------------------ kinematics
-    def achieved_goal(self, config: torch.Tensor) -> torch.Tensor:
-        """The TCP position ``(..., 3)`` (metres, base frame)."""
-        return self.robot.fk(config)
-
     def transition(self, state: TensorDictBase, action: torch.Tensor) -> TensorDict:
         out = super().transition(state, action)
         if self.workspace_exit == "block":
@@ -219,39 +180,10 @@ class UR5eReach(TaskModel):
         ws_c = torch.minimum(tcp - self.workspace_low, self.workspace_high - tcp).amin(-1)
         return torch.stack([obstacle_c, table_c, self_c, ws_c], -1).reshape(*batch, 4)
 
-    def lipschitz(self) -> dict[str, float]:
-        """How far (m) the checked geometry can move per radian of joint motion (max-norm).
-
-        For a joint step ``dq`` a sphere centre moves at most ``L * max|dq|`` with
-        ``L = sum_j |dc/dq_j|``; the maximum over configurations is sampled (finite
-        differences on 4096 configurations over the joint limits, the wrist coupling
-        included) and scaled by 1.25. Cached per URDF file.
-        """
-        robot = self.robot
-        key = (robot.urdf_path, tuple(robot.self_collision_spheres.tolist()), tuple(robot.gripper_spheres.tolist()))
-        if key in _LIPSCHITZ:
-            return _LIPSCHITZ[key]
-        gen = torch.Generator().manual_seed(0)
-        low, high = robot.joint_low.double().cpu(), robot.joint_high.double().cpu()
-        q = (low + torch.rand(4096, 3, generator=gen, dtype=torch.float64) * (high - low)).to(robot.device, robot.dtype)
-        eps = 1e-3
-        c0, t0 = robot.spheres_and_tcp(q)
-        dc, dt = [], []
-        for j in range(3):  # over the joints, not the batch
-            c1, t1 = robot.spheres_and_tcp(q + eps * torch.eye(3, dtype=q.dtype, device=q.device)[j])
-            dc.append((c1 - c0) / eps)
-            dt.append((t1 - t0) / eps)
-        J = torch.stack(dc, -1)  # (n, S, 3 xyz, 3 joints)
-        g, o = robot.gripper_spheres, robot.self_collision_spheres
-        bounds = {
-            "obstacle": J.norm(dim=-2).sum(-1).max(),
-            "table": J[:, robot.table_mask, 2].abs().sum(-1).max(),
-            "self": (J[:, g].unsqueeze(2) - J[:, o].unsqueeze(1)).norm(dim=-2).sum(-1).max(),
-            "workspace": torch.stack(dt, -1).abs().sum(-1).max(),
-        }
-        bounds = {k: _SAFETY * max(float(v), 1e-3) for k, v in bounds.items()}
-        _LIPSCHITZ[key] = bounds
-        return bounds
+    def self_pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every gripper sphere against every base, shoulder and upper-arm sphere."""
+        g, o = self.robot.gripper_spheres, self.robot.self_collision_spheres
+        return g.repeat_interleave(o.numel()), o.repeat(g.numel())
 
     # --------------------------------------------------------------- sampling
     @staticmethod
@@ -260,70 +192,8 @@ class UR5eReach(TaskModel):
         pan = q[..., 0]
         return tcp[..., 0] * torch.cos(pan) + tcp[..., 1] * torch.sin(pan)
 
-    def sample_tasks(self, n: int, generator: torch.Generator | None = None) -> TensorDict:
-        """Draw ``n`` tasks by vectorised rejection sampling.
-
-        Start and goal are configurations free with the motion margin whose TCPs lie in
-        the workspace (in the front branch unless ``task_branch="any"``); the obstacle
-        centre is uniform in its region; a draw is kept when ``d2 > d1 > d3``
-        (start-goal > start-obstacle > obstacle-goal). Two stages, same distribution as
-        rejecting whole draws: configurations are first filtered by the
-        obstacle-independent checks, then random pairs of survivors meet a random obstacle.
-        """
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive int, got {n!r}")
-        f = dict(device=self.device, dtype=self.dtype)
-        gdev = generator.device if generator is not None else self.device
-        far_away = torch.tensor([10.0, 11.0, 10.0, 11.0, 10.0, 11.0], **f)  # a box nothing reaches
-        span = self.task_joint_high - self.task_joint_low
-        margin = self.motion_margin()
-        out, have, barren = [], 0, 0
-        while have < n:
-            if barren >= 100:
-                raise ValueError(
-                    f"sample_tasks: no task found in 100 rounds of draws; motion_resolution={self.motion_resolution} "
-                    "asks start and goal to keep a margin no configuration keeps"
-                )
-            m = max(256, 16 * (n - have))
-            q = self.task_joint_low + torch.rand(m, 3, generator=generator, device=gdev, dtype=self.dtype).to(self.device) * span
-            flags, tcp = self.collision_flags(q, far_away, margin)
-            ok = flags == 0
-            if self.task_branch == "front":
-                ok = ok & (self.reach_along_pan(q, tcp) > 0).unsqueeze(-1)
-            keep = ok.squeeze(-1).nonzero().squeeze(-1)
-            if keep.numel() < 2:
-                barren += 1
-                continue
-            q, tcp = q[keep], tcp[keep]
-            k = 8 * m
-            pick = torch.randint(q.shape[0], (2, k), generator=generator, device=gdev).to(self.device)
-            centre = self.obstacle_center_low + torch.rand(k, 3, generator=generator, device=gdev, dtype=self.dtype).to(
-                self.device
-            ) * (self.obstacle_center_high - self.obstacle_center_low)
-            tcp_pair = tcp[pick]  # (2, k, 3)
-            d1 = (tcp_pair[0] - centre).norm(dim=-1)
-            d2 = (tcp_pair[0] - tcp_pair[1]).norm(dim=-1)
-            d3 = (centre - tcp_pair[1]).norm(dim=-1)
-            cand = ((d2 > d1) & (d1 > d3) & (d2 > self.success_distance)).nonzero().squeeze(-1)[: 4 * (n - have)]
-            pick, centre, tcp_pair = pick[:, cand], centre[cand], tcp_pair[:, cand]
-            q_pair = q[pick]
-            box = aabb_from_center(centre, self.obstacle_size.expand_as(centre))
-            hits = self.collision_flags(q_pair, box.unsqueeze(0), margin)[0] & CollisionReason.OBSTACLE
-            ok = (hits == 0).squeeze(-1).all(0)
-            idx = ok.nonzero().squeeze(-1)[: n - have]
-            barren = barren + 1 if idx.numel() == 0 else 0
-            if idx.numel():
-                out.append(
-                    TensorDict(
-                        {
-                            self.config_key: q_pair[0, idx],
-                            self.achieved_goal_key: tcp_pair[0, idx],
-                            "obstacle": box[idx],
-                            self.desired_goal_key: tcp_pair[1, idx],
-                            self.goal_config_key: q_pair[1, idx],
-                        },
-                        batch_size=[idx.numel()],
-                    )
-                )
-                have += idx.numel()
-        return torch.cat(out) if len(out) > 1 else out[0]
+    def task_filter(self, config: torch.Tensor, tcp: torch.Tensor) -> torch.Tensor:
+        """``task_branch="front"``: the TCP in front of the shoulder; ``"any"``: every configuration."""
+        if self.task_branch == "any":
+            return super().task_filter(config, tcp)
+        return self.reach_along_pan(config, tcp) > 0

@@ -1,0 +1,197 @@
+"""What the arm reach tasks share: a robot arm reaching a TCP position among boxes on a table."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from torchrl_silp.geometry import CollisionReason, aabb_from_center
+from torchrl_silp.models.base import TaskModel
+
+__all__ = ["ArmReach"]
+
+# Sampled Lipschitz maxima are scaled by this: the sampled maximum of a smooth
+# function over the joint box sits within a few percent of its supremum.
+_SAFETY = 1.25
+_LIPSCHITZ: dict = {}
+
+
+class ArmReach(TaskModel):
+    """A robot arm reaching a goal among ``num_boxes`` boxes on a table (:class:`UR5eReach`, :class:`PandaReach`).
+
+    The achieved goal is the robot's TCP (``robot.fk``); the scene is ``"obstacle"``, the boxes'
+    AABBs ``(xmin, xmax, ymin, ymax, zmin, zmax)`` one after the other; a configuration collides
+    with a box, the table, itself or by leaving the workspace (bits of
+    :class:`~torchrl_silp.geometry.CollisionReason`). Tasks: start and goal configurations drawn in
+    the task joint box, free with the motion margin, accepted by :meth:`task_filter`; box centres
+    uniform in their region; kept when ``d2 > d1 > d3`` with the first box (start-goal >
+    start-box > box-goal) and no box touches start or goal (the paper's sec. 4.1 rule).
+
+    A subclass sets the class constants (``WORKSPACE_LOW`` / ``HIGH``, ``OBSTACLE_SIZE``,
+    ``OBSTACLE_CENTER_LOW`` / ``HIGH``, ``TASK_JOINT_LOW`` / ``HIGH``), ``robot_class``,
+    ``config_dim`` and ``action_scale``, and implements :meth:`collision_flags`, :meth:`clearance`
+    and :meth:`self_pairs`.
+    """
+
+    goal_dim = 3
+    collision_reasons = ("obstacle", "table", "self", "workspace")
+    robot_class: type
+    WORKSPACE_LOW: tuple
+    WORKSPACE_HIGH: tuple
+    OBSTACLE_SIZE: tuple
+    OBSTACLE_CENTER_LOW: tuple
+    OBSTACLE_CENTER_HIGH: tuple
+    TASK_JOINT_LOW: tuple
+    TASK_JOINT_HIGH: tuple
+
+    def __init__(self, robot=None, *, num_boxes: int = 1, success_distance: float = 0.05,
+                 motion_resolution: float = 0.01, conservative: bool = True,
+                 device: torch.device | str | None = None, dtype: torch.dtype = torch.float32):
+        super().__init__(success_distance=success_distance, motion_resolution=motion_resolution,
+                         conservative=conservative, device=device, dtype=dtype)
+        if isinstance(num_boxes, bool) or not isinstance(num_boxes, int) or num_boxes < 1:
+            raise ValueError(f"num_boxes must be a positive int, got {num_boxes!r}")
+        if robot is None:
+            robot = self.robot_class(device=self.device, dtype=dtype)
+        elif not isinstance(robot, self.robot_class):
+            raise TypeError(f"robot must be a {self.robot_class.__name__}, got {type(robot).__name__}")
+        self.robot = robot.to(device=self.device, dtype=dtype)
+        self.num_boxes = num_boxes
+        self.scene_shapes = {"obstacle": (6 * num_boxes,)}
+        self._make_tensors()
+
+    def _make_tensors(self) -> None:
+        f = dict(device=self.device, dtype=self.dtype)
+        self.workspace_low = torch.tensor(self.WORKSPACE_LOW, **f)
+        self.workspace_high = torch.tensor(self.WORKSPACE_HIGH, **f)
+        self.obstacle_size = torch.tensor(self.OBSTACLE_SIZE, **f)
+        self.obstacle_center_low = torch.tensor(self.OBSTACLE_CENTER_LOW, **f)
+        self.obstacle_center_high = torch.tensor(self.OBSTACLE_CENTER_HIGH, **f)
+        self.task_joint_low = torch.tensor(self.TASK_JOINT_LOW, **f)
+        self.task_joint_high = torch.tensor(self.TASK_JOINT_HIGH, **f)
+
+    def to(self, device) -> "ArmReach":
+        super().to(device)
+        self.robot.to(device=self.device)
+        self._make_tensors()
+        return self
+
+    @property
+    def config_low(self) -> torch.Tensor:
+        return self.robot.joint_low
+
+    @property
+    def config_high(self) -> torch.Tensor:
+        return self.robot.joint_high
+
+    def achieved_goal(self, config: torch.Tensor) -> torch.Tensor:
+        """The TCP position ``(..., 3)`` (metres, base frame)."""
+        return self.robot.fk(config)
+
+    def self_pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Sphere index pairs ``(a, b)`` of the self-collision test."""
+        raise NotImplementedError
+
+    def task_filter(self, config: torch.Tensor, tcp: torch.Tensor) -> torch.Tensor:
+        """Which free configurations may start or end a task: bool ``(N,)`` (all, by default)."""
+        return torch.ones(config.shape[:-1], dtype=torch.bool, device=config.device)
+
+    def lipschitz(self) -> dict[str, float]:
+        """How far (m) the checked geometry can move per radian of joint motion (max-norm), per reason.
+
+        For a joint step ``dq`` a sphere centre moves at most ``L * max|dq|`` with
+        ``L = sum_j |dc/dq_j|``; the maximum over configurations is sampled (finite
+        differences on 4096 configurations over the joint limits) and scaled by 1.25.
+        Cached per model class, URDF file and self-collision pairs.
+        """
+        robot = self.robot
+        a, b = self.self_pairs()
+        key = (type(self).__name__, robot.urdf_path, a.numel(), int(a.sum()), int(b.sum()))
+        if key in _LIPSCHITZ:
+            return _LIPSCHITZ[key]
+        gen = torch.Generator().manual_seed(0)
+        low, high = robot.joint_low.double().cpu(), robot.joint_high.double().cpu()
+        d = low.numel()
+        q = (low + torch.rand(4096, d, generator=gen, dtype=torch.float64) * (high - low)).to(robot.device, robot.dtype)
+        eps = 1e-3
+        c0, t0 = robot.spheres_and_tcp(q)
+        dc, dt = [], []
+        for j in range(d):  # over the joints, not the batch
+            c1, t1 = robot.spheres_and_tcp(q + eps * torch.eye(d, dtype=q.dtype, device=q.device)[j])
+            dc.append((c1 - c0) / eps)
+            dt.append((t1 - t0) / eps)
+        J = torch.stack(dc, -1)  # (n, S, 3 xyz, d joints)
+        bounds = {
+            "obstacle": J.norm(dim=-2).sum(-1).max(),
+            "table": J[:, robot.table_mask, 2].abs().sum(-1).max(),
+            "self": (J[:, a] - J[:, b]).norm(dim=-2).sum(-1).max(),
+            "workspace": torch.stack(dt, -1).abs().sum(-1).max(),
+        }
+        bounds = {k: _SAFETY * max(float(v), 1e-3) for k, v in bounds.items()}
+        _LIPSCHITZ[key] = bounds
+        return bounds
+
+    def _boxes(self, k: int, generator, gdev) -> torch.Tensor:
+        span = self.obstacle_center_high - self.obstacle_center_low
+        u = torch.rand(k, self.num_boxes, 3, generator=generator, device=gdev, dtype=self.dtype).to(self.device)
+        centre = self.obstacle_center_low + u * span
+        return aabb_from_center(centre, self.obstacle_size.expand_as(centre))  # (k, K, 6)
+
+    def sample_tasks(self, n: int, generator: torch.Generator | None = None) -> TensorDict:
+        """Draw ``n`` tasks by vectorised rejection sampling (the rule in the class docstring).
+
+        Two stages, same distribution as rejecting whole draws: configurations are first
+        filtered by the box-independent checks, then random pairs of survivors meet random boxes.
+        """
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"n must be a positive int, got {n!r}")
+        gdev = generator.device if generator is not None else self.device
+        f = dict(device=self.device, dtype=self.dtype)
+        far_away = torch.tensor([10.0, 11.0] * 3, **f).repeat(self.num_boxes)  # boxes nothing reaches
+        span = self.task_joint_high - self.task_joint_low
+        margin = self.motion_margin()
+        out, have, barren = [], 0, 0
+        while have < n:
+            if barren >= 100:
+                raise ValueError(
+                    f"sample_tasks: no task found in 100 rounds of draws; motion_resolution={self.motion_resolution} "
+                    "asks start and goal to keep a margin no configuration keeps"
+                )
+            m = max(256, 16 * (n - have))
+            u = torch.rand(m, self.config_dim, generator=generator, device=gdev, dtype=self.dtype).to(self.device)
+            q = self.task_joint_low + u * span
+            flags, tcp = self.collision_flags(q, far_away, margin)
+            keep = ((flags == 0).squeeze(-1) & self.task_filter(q, tcp)).nonzero().squeeze(-1)
+            if keep.numel() < 2:
+                barren += 1
+                continue
+            q, tcp = q[keep], tcp[keep]
+            k = 8 * m
+            pick = torch.randint(q.shape[0], (2, k), generator=generator, device=gdev).to(self.device)
+            boxes = self._boxes(k, generator, gdev)
+            centre = (boxes[:, 0, 0::2] + boxes[:, 0, 1::2]) / 2
+            tcp_pair = tcp[pick]  # (2, k, 3)
+            d1 = (tcp_pair[0] - centre).norm(dim=-1)
+            d2 = (tcp_pair[0] - tcp_pair[1]).norm(dim=-1)
+            d3 = (centre - tcp_pair[1]).norm(dim=-1)
+            cand = ((d2 > d1) & (d1 > d3) & (d2 > self.success_distance)).nonzero().squeeze(-1)[: 4 * (n - have)]
+            pick, boxes, tcp_pair = pick[:, cand], boxes[cand].flatten(-2), tcp_pair[:, cand]
+            q_pair = q[pick]
+            hits = self.collision_flags(q_pair, boxes.unsqueeze(0), margin)[0] & CollisionReason.OBSTACLE
+            idx = (hits == 0).squeeze(-1).all(0).nonzero().squeeze(-1)[: n - have]
+            barren = barren + 1 if idx.numel() == 0 else 0
+            if idx.numel():
+                out.append(
+                    TensorDict(
+                        {
+                            self.config_key: q_pair[0, idx],
+                            self.achieved_goal_key: tcp_pair[0, idx],
+                            "obstacle": boxes[idx],
+                            self.desired_goal_key: tcp_pair[1, idx],
+                            self.goal_config_key: q_pair[1, idx],
+                        },
+                        batch_size=[idx.numel()],
+                    )
+                )
+                have += idx.numel()
+        return torch.cat(out) if len(out) > 1 else out[0]
