@@ -32,7 +32,7 @@ import pytorch_kinematics as pk
 import torch
 from torch import nn
 
-from torchrl_silp.robot import CollisionPrimitive, _parse_collisions, _rpy_to_matrix
+from torchrl_silp.robot import CollisionPrimitive, _parse_collisions, _rpy_to_matrix, read_urdf
 
 __all__ = ["Panda", "panda_urdf_path"]
 
@@ -135,11 +135,7 @@ class Panda(nn.Module):
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         path = panda_urdf_path() if urdf_path is None else os.fspath(urdf_path)
-        try:
-            with open(path) as fh:
-                text = fh.read()
-        except OSError as err:
-            raise ValueError(f"urdf_path: cannot read URDF file {path!r}: {err}") from err
+        text = read_urdf(path)
         try:
             chain = pk.build_serial_chain_from_urdf(text, TCP_FRAME)
             joints = _urdf_joints(text)

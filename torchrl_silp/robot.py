@@ -40,6 +40,15 @@ def default_urdf_path() -> str:
     return str(resources.files("torchrl_silp.assets") / "ur5e.urdf")
 
 
+def read_urdf(path: str) -> str:
+    """The text of a URDF file; a ValueError naming ``urdf_path`` when it cannot be read."""
+    try:
+        with open(path) as fh:
+            return fh.read()
+    except OSError as err:
+        raise ValueError(f"urdf_path: cannot read URDF file {path!r}: {err}") from err
+
+
 def _rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
     # URDF convention: R = Rz(yaw) @ Ry(pitch) @ Rx(roll)
     r, p, y = rpy
@@ -319,11 +328,7 @@ class UR5e(nn.Module):
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         path = default_urdf_path() if urdf_path is None else os.fspath(urdf_path)
-        try:
-            with open(path) as fh:
-                text = fh.read()
-        except OSError as err:
-            raise ValueError(f"urdf_path: cannot read URDF file {path!r}: {err}") from err
+        text = read_urdf(path)
         try:
             chain = pk.build_serial_chain_from_urdf(text, TCP_FRAME)
         except Exception as err:  # the parser raises assorted types

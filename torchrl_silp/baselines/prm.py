@@ -32,6 +32,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl_silp.data.demo_buffer import transition_keys
 from torchrl_silp.eval import DEFAULT_TEST_SEED, evaluate
 from torchrl_silp.models.base import TaskModel, as_model
+from torchrl_silp.planning.demos import demo_start_flags
 
 _has_ompl = importlib.util.find_spec("ompl") is not None
 if _has_ompl:
@@ -569,23 +570,8 @@ def _demonstrations(
         }
     )
     root = state[b, t]
-    root.update(
-        {
-            "action": actions[b, t],
-            model.goal_config_key: goal_q.clone(),
-            # flags of the state a step starts from: a demo state is never terminal or colliding
-            "collision": false.clone(),
-            "swept_collision": false.clone(),
-            "success": false.clone(),
-            "discard": false.clone(),
-            "collision_reason": torch.zeros(N, 1, dtype=flags.dtype, device=device),
-            "done": false.clone(),
-            "terminated": false.clone(),
-            "truncated": false.clone(),
-            "is_demo": torch.ones(N, 1, dtype=torch.bool, device=device),
-            "episode": b + first_episode,
-        }
-    )
+    root.update({"action": actions[b, t], model.goal_config_key: goal_q.clone(), **demo_start_flags(N, device),
+                 "episode": b + first_episode})
     root = build(root)
     root.set("next", build(next_td))
     return root, ok

@@ -9,7 +9,7 @@ from torchrl_silp.models.base import as_model
 from torchrl_silp.planning.roadmap import ExperienceRoadmap
 from torchrl_silp.planning.search import SEARCH_METHODS, Paths, roadmap_paths
 
-__all__ = ["plan_demonstrations", "paths_to_demonstrations"]
+__all__ = ["plan_demonstrations", "paths_to_demonstrations", "demo_start_flags"]
 
 
 def _split_counts(m: torch.Tensor) -> torch.Tensor:
@@ -27,6 +27,16 @@ def _split_counts(m: torch.Tensor) -> torch.Tensor:
 
 def _default_observation(model, observation_transform):
     return model.observation_transform() if observation_transform is None else observation_transform
+
+
+def demo_start_flags(n: int, device) -> dict[str, torch.Tensor]:
+    """The flags of the ``n`` states demonstration steps start from: never terminal, colliding or discarded."""
+    false = torch.zeros(n, 1, dtype=torch.bool, device=device)
+    flags = {key: false.clone() for key in
+             ("collision", "swept_collision", "success", "discard", "done", "terminated", "truncated")}
+    flags["collision_reason"] = torch.zeros(n, 1, dtype=torch.uint8, device=device)
+    flags["is_demo"] = torch.ones(n, 1, dtype=torch.bool, device=device)
+    return flags
 
 
 def paths_to_demonstrations(
@@ -135,22 +145,7 @@ def paths_to_demonstrations(
         }
     )
     root = state[idx]
-    root.update(
-        {
-            "action": act[idx],
-            model.goal_config_key: goal_q[idx],
-            # flags of the state a step starts from: a demo state is never terminal or colliding
-            "collision": false.clone(),
-            "swept_collision": false.clone(),
-            "success": false.clone(),
-            "discard": false.clone(),
-            "collision_reason": torch.zeros(N, 1, dtype=flags.dtype, device=device),
-            "done": false.clone(),
-            "terminated": false.clone(),
-            "truncated": false.clone(),
-            "is_demo": torch.ones(N, 1, dtype=torch.bool, device=device),
-        }
-    )
+    root.update({"action": act[idx], model.goal_config_key: goal_q[idx], **demo_start_flags(N, device)})
     root = build(root)
     root.set("next", build(nxt))
     return root
