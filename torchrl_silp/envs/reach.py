@@ -43,8 +43,9 @@ class ReachEnv(EnvBase):
     motion (f_r: the collision test covers the segment moved along) and reports
     ``("next", "collision")``, ``"success"`` and ``"collision_reason"``. The env
     itself only *reports* collisions (``("next", "swept_collision")`` marks the
-    collisions of a motion whose end configuration is free: the ones a check of
-    the reached state alone would have let pass): the arm moves into the colliding state and
+    collisions of a motion whose end configuration is free: the motion passes
+    through something, or within the motion check's margin of it, and a check of
+    the reached state alone would have let it pass): the arm moves into the colliding state and
     the episode goes on; :class:`~torchrl_silp.transforms.CollisionHandling`
     applies the paper's type 0/1/2 handling. Success terminates, ``max_steps``
     truncates.
