@@ -460,10 +460,11 @@ def tasks_checks(runs: dict[str, list[dict]]) -> list[str]:
     if ur5e:
         values = _values(ur5e, "success_rate")
         mean = float(np.mean(values))
-        holds = len(values) >= PAPER_SEEDS and abs(mean - UR5E_BEFORE) <= UR5E_TOLERANCE
-        out.append(f"- {'holds' if holds else 'does not hold (yet)'}: the UR5e default config's mean over "
-                   f"{PAPER_SEEDS} seeds within {UR5E_TOLERANCE} of {UR5E_BEFORE} (the figure before the redesign, "
-                   f"end-state collision check): {mean:.3f} over {len(values)} seed(s)")
+        holds = len(values) >= PAPER_SEEDS and mean >= UR5E_BEFORE - UR5E_TOLERANCE
+        out.append(f"- {'holds' if holds else 'does not hold (yet)'}: no regression of the UR5e default config, its "
+                   f"mean over {PAPER_SEEDS} seeds at least {UR5E_BEFORE} - {UR5E_TOLERANCE} ({UR5E_BEFORE}: the "
+                   f"figure before the redesign, end-state collision check): {mean:.3f} over {len(values)} seed(s), "
+                   f"{mean - UR5E_BEFORE:+.3f}")
     else:
         out.append("- not run: the UR5e default config")
     return out
