@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import hydra
@@ -161,6 +162,8 @@ def train(cfg: DictConfig) -> dict:
     final, rollout = run_evaluation(return_rollout=True)
     checkpoint()
     summary = utils.summarize(cfg, counters, final, len(buffers.demo_buffer))
+    if summary["warning"]:
+        warnings.warn(summary["warning"])
     utils.plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
     if isinstance(model, UR5eReach):  # the pictures draw a UR5e
         save_rollout_png(model, rollout[:4], run_dir / "test_rollouts.png")

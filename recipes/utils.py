@@ -37,6 +37,8 @@ EXPLORATION_MODES = ("gp", "random", "none")
 def check_device(value) -> None:
     if value not in ("cpu", "cuda", "auto") and not str(value).startswith("cuda:"):
         raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {value!r}")
+    if str(value).startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device={value!r}, but torch finds no CUDA device here: use device=cpu or device=auto")
 
 
 def start_run(cfg) -> tuple[torch.device, Path]:
@@ -56,6 +58,8 @@ def start_run(cfg) -> tuple[torch.device, Path]:
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
     run_dir = Path(cfg.run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"run_dir {str(run_dir)!r} is a file: give a directory (it is created if missing)")
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
     return device, run_dir
@@ -397,6 +401,8 @@ def summarize(cfg, counters: dict, final: dict, demos_stored: int) -> dict:
         "planning_share": counters["planning_s"] / max(counters["train_wall_s"], 1e-9),
         "time_to_095_s": counters["time_to_095_s"], "rollout_time_per_episode_s": final["time_per_rollout_s"],
         "demos_stored": demos_stored,
+        # demonstrations were on and the planner stored none: SILP+ ran as plain RL
+        "warning": "silp.demos is on but no demonstration was stored" if cfg.silp.demos and not demos_stored else None,
     }
 
 

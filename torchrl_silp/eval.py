@@ -85,6 +85,8 @@ def evaluate(
         >>> evaluate(still, n_tasks=8, model=UR5eReach())["success_rate"]
         0.0
     """
+    if not callable(policy):
+        raise TypeError(f"policy must be a TensorDict module or a callable td -> td, got {type(policy).__name__}")
     if isinstance(n_tasks, bool) or not isinstance(n_tasks, int) or n_tasks < 1:
         raise ValueError(f"n_tasks must be a positive int, got {n_tasks!r}")
     if env is None and model is None:

@@ -35,6 +35,8 @@ class CollisionReason:
 
 def aabb_from_center(center: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
     """``(..., 6)`` box ``(xmin, xmax, ymin, ymax, zmin, zmax)`` from centre and full size ``(..., 3)``."""
+    if bool((size < 0).any()):
+        raise ValueError("size must be >= 0 in every coordinate (a box's full size)")
     half = size / 2
     lo, hi = center - half, center + half
     return torch.stack([lo, hi], dim=-1).flatten(-2)

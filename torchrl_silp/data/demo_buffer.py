@@ -13,6 +13,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
 from torchrl_silp.models.base import as_model
 from torchrl_silp.planning import plan_demonstrations
+from torchrl_silp.planning.demos import check_planner_kwargs
 
 __all__ = ["DemoReplayBuffer", "MixedReplay", "TRANSITION_KEYS", "transition_keys"]
 
@@ -125,6 +126,7 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
         planner_kwargs = dict(planner_kwargs or {})
         if "observation_transform" in planner_kwargs:
             raise ValueError("pass observation_transform to DemoReplayBuffer, not in planner_kwargs")
+        check_planner_kwargs(planner_kwargs)
         super().__init__(storage=storage, **kwargs)
         self.model = model
         self.observation_transform = observation_transform
@@ -316,6 +318,8 @@ class MixedReplay:
         batch_size = self.batch_size if batch_size is None else batch_size
         if batch_size is None:
             raise ValueError("batch_size must be given here or to MixedReplay(batch_size=...)")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
         if len(self.demo_buffer) == 0 and len(self.interaction_buffer) == 0:
             raise RuntimeError("MixedReplay.sample: both buffers are empty")
         n_demo, n_pi = self.split(batch_size)

@@ -173,7 +173,9 @@ class ReachEnv(EnvBase):
         return state
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action")
+        action = tensordict.get("action", None)
+        if action is None:
+            raise KeyError('action: the step\'s TensorDict holds no "action" (did the policy write one?)')
         if action.shape != (*self.batch_size, self.model.action_dim):
             raise ValueError(f"action must have shape {(*self.batch_size, self.model.action_dim)}, got {tuple(action.shape)}")
         if torch.isnan(action).any():

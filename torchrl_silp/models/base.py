@@ -38,6 +38,19 @@ GOAL_CONFIG_KEY = "goal_joint_position"
 _CHUNK = 32768
 
 
+def _check_finite(name: str, value: torch.Tensor) -> None:
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name} contains NaN or inf")
+
+
+def check_boxes(name: str, boxes: torch.Tensor) -> None:
+    """Boxes ``(..., 6k)`` ``(xmin, xmax, ymin, ymax, zmin, zmax)``: finite, each min <= max."""
+    _check_finite(name, boxes)
+    b = boxes.reshape(-1, 3, 2)
+    if bool((b[..., 0] > b[..., 1]).any()):
+        raise ValueError(f"{name}: a box has min > max (boxes are (xmin, xmax, ymin, ymax, zmin, zmax))")
+
+
 def _check_tensor(name: str, value, last_dim: int | None = None) -> None:
     if not isinstance(value, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
@@ -317,8 +330,14 @@ class TaskModel(ABC):
         return ~hit
 
     def transition(self, state: TensorDictBase, action: torch.Tensor) -> TensorDict:
-        """The kinematic transition f_s: the next state (configuration and achieved goal; scene and goal kept)."""
+        """The kinematic transition f_s: the next state (configuration and achieved goal; scene and goal kept).
+
+        NaN or infinite inputs raise ``ValueError`` (as the env's step does); a differentiable
+        caller inside ``vmap`` (a critic) uses :meth:`next_config` and :meth:`achieved_goal`.
+        """
         self._check_state(state, "state")
+        _check_tensor("action", action, self.action_dim)
+        _check_finite("action", action)
         config = self.next_config(state.get(self.config_key), action)
         out = state.select(*self.state_keys).clone(False)
         out.set(self.config_key, config)
@@ -347,6 +366,8 @@ class TaskModel(ABC):
         so the kinematics run once.
         """
         self._check_state(state, "state")
+        _check_tensor("action", action, self.action_dim)
+        _check_finite("action", action)
         config = state.get(self.config_key)
         nxt = self.next_config(config, action)
         flags, goal = self.motion_collision_flags(config, nxt, state.select(*self.scene_keys))
@@ -394,3 +415,5 @@ class TaskModel(ABC):
         missing = [k for k in self.state_keys if k not in state.keys()]
         if missing:
             raise KeyError(f"{name} lacks the keys {missing} (a state holds {self.state_keys})")
+        for key in self.state_keys:
+            _check_finite(f"{name}[{key!r}]", state.get(key))

@@ -9,7 +9,7 @@ from tensordict import TensorDictBase
 
 from torchrl_silp.geometry import CollisionReason, in_box
 from torchrl_silp.models.arm import ArmReach
-from torchrl_silp.models.base import _check_tensor
+from torchrl_silp.models.base import _check_finite, _check_tensor, check_boxes
 from torchrl_silp.panda import Panda
 
 __all__ = ["PandaReach"]
@@ -82,6 +82,8 @@ class PandaReach(ArmReach):
         _check_tensor("config", config, 7)
         obstacle = scene.get("obstacle") if isinstance(scene, TensorDictBase) else scene
         _check_tensor("obstacle", obstacle, 6 * self.num_boxes)
+        _check_finite("config", config)
+        check_boxes("obstacle", obstacle)
         batch = torch.broadcast_shapes(config.shape[:-1], obstacle.shape[:-1])
         q = config.to(self.dtype).expand(*batch, 7).reshape(-1, 7)
         boxes = obstacle.to(self.dtype).expand(*batch, 6 * self.num_boxes).reshape(-1, self.num_boxes, 6)

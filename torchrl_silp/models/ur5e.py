@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from torchrl_silp.geometry import CollisionReason, in_box
 from torchrl_silp.models.arm import ArmReach
-from torchrl_silp.models.base import _check_tensor
+from torchrl_silp.models.base import _check_finite, _check_tensor, check_boxes
 from torchrl_silp.robot import UR5e
 
 __all__ = ["UR5eReach", "TASK_BRANCHES", "WORKSPACE_EXIT_MODES"]
@@ -121,6 +121,8 @@ class UR5eReach(ArmReach):
         _check_tensor("config", config, 3)
         obstacle = scene.get("obstacle") if isinstance(scene, TensorDictBase) else scene
         _check_tensor("obstacle", obstacle, 6)
+        _check_finite("config", config)
+        check_boxes("obstacle", obstacle)
         batch = torch.broadcast_shapes(config.shape[:-1], obstacle.shape[:-1])
         q = config.to(self.dtype).expand(*batch, 3).reshape(-1, 3)
         # contiguous: an expanded (stride-0) box would recompile the compiled kernel per layout

@@ -129,7 +129,8 @@ class NextGoalOffsetQ(nn.Module):
         state = TensorDict(
             {key: inputs[i] for key, i in self._state_index.items()}, batch_size=action.shape[:-1]
         )
-        next_achieved = model.transition(state, action).get(model.achieved_goal_key)
+        # the model's unchecked pieces: a host-synced input check cannot run inside the critic's vmap
+        next_achieved = model.achieved_goal(model.next_config(state.get(model.config_key), action))
         offset = state.get(model.desired_goal_key) - next_achieved
         return self.mlp(*inputs[: self.num_mlp_inputs], offset)
 

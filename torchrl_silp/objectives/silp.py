@@ -130,8 +130,8 @@ class SILPLoss(LossModule):
         """Configurable tensordict keys (set with :meth:`set_keys`).
 
         Attributes:
-            is_demo: bool ``(..., 1)`` flag of the demonstration rows. A batch
-                without it has no demonstration. Defaults to ``"is_demo"``.
+            is_demo: bool ``(..., 1)`` flag of the demonstration rows; a batch
+                without it is refused (``KeyError``). Defaults to ``"is_demo"``.
             action: the stored (demonstrated) action; also forwarded to the
                 wrapped loss. Defaults to ``"action"``.
             reward: the stored reward, read at ``("next", reward)``; also
@@ -412,11 +412,13 @@ class SILPLoss(LossModule):
         a_demo = td.get(keys.action)
         is_demo = td.get(keys.is_demo, None)
         if is_demo is None:
-            is_demo = torch.zeros(n, dtype=torch.bool, device=a_demo.device)
-        else:
-            if is_demo.dtype != torch.bool:
-                raise TypeError(f"{keys.is_demo!r} must be a bool tensor, got {is_demo.dtype}")
-            is_demo = is_demo.reshape(n)
+            raise KeyError(
+                f"the batch holds no {keys.is_demo!r} (the demonstration flag, True on demonstration rows): "
+                "sample it from MixedReplay or set it, all False for a batch without demonstrations"
+            )
+        if is_demo.dtype != torch.bool:
+            raise TypeError(f"{keys.is_demo!r} must be a bool tensor, got {is_demo.dtype}")
+        is_demo = is_demo.reshape(n)
         # only the demo rows need the actor's action and the filter's look-ahead:
         # at the paper's N_D / (N_D + N_pi) = 1/4 that is 4x less model work than
         # masking a full batch (one host sync for the row count)

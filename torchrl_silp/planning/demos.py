@@ -6,10 +6,11 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_silp.models.base import as_model
+from torchrl_silp.planning.edges import _check_positive
 from torchrl_silp.planning.roadmap import ExperienceRoadmap
 from torchrl_silp.planning.search import SEARCH_METHODS, Paths, roadmap_paths
 
-__all__ = ["plan_demonstrations", "paths_to_demonstrations", "demo_start_flags"]
+__all__ = ["plan_demonstrations", "paths_to_demonstrations", "demo_start_flags", "check_planner_kwargs"]
 
 
 def _split_counts(m: torch.Tensor) -> torch.Tensor:
@@ -149,6 +150,36 @@ def paths_to_demonstrations(
     root = build(root)
     root.set("next", build(nxt))
     return root
+
+
+PLANNER_OPTIONS = ("d", "n_pairs", "step_size", "method", "generator", "lazy", "goal_node")
+
+
+def check_planner_kwargs(kwargs: dict) -> None:
+    """Reject planner options :func:`plan_demonstrations` would refuse, before any episode is planned.
+
+    Examples:
+        >>> check_planner_kwargs({"d": 0.15, "method": "greedy"})
+        >>> check_planner_kwargs({"d": 0.0})
+        Traceback (most recent call last):
+        ...
+        ValueError: d must be a positive finite number of metres, got 0.0
+    """
+    unknown = sorted(set(kwargs) - set(PLANNER_OPTIONS))
+    if unknown:
+        raise TypeError(f"planner options {unknown} are unknown; allowed: {PLANNER_OPTIONS}")
+    if "d" in kwargs:
+        _check_positive("d", kwargs["d"], "metres")
+    if kwargs.get("step_size") is not None:
+        _check_positive("step_size", kwargs["step_size"], "radians")
+    n_pairs = kwargs.get("n_pairs", 0)
+    if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
+        raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
+    if kwargs.get("method", "exact") not in SEARCH_METHODS:
+        raise ValueError(f"method must be one of {SEARCH_METHODS}, got {kwargs['method']!r}")
+    for name in ("lazy", "goal_node"):
+        if not isinstance(kwargs.get(name, False), bool):
+            raise TypeError(f"{name} must be a bool, got {kwargs[name]!r}")
 
 
 def plan_demonstrations(
