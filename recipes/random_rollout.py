@@ -4,7 +4,8 @@ A sanity check of the task, not a training recipe: it prints the mean reward,
 the collision rate and the success rate of random actions, and saves one
 panel per episode (arm at the final state, TCP path, obstacle, goal).
 
-    python recipes/random_rollout.py --num-envs 4 --steps 50 --seed 0 --out docs/random_rollout.png
+    python recipes/random_rollout.py                                   # the picture goes to runs/random_rollout.png
+    python recipes/random_rollout.py --out docs/random_rollout.png     # the committed picture, regenerated
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--num-envs", type=int, default=4, help="parallel envs (batch size)")
     parser.add_argument("--steps", type=int, default=50, help="steps per env (the env's episode length is 50)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the tasks (env) and the random actions (torch)")
-    parser.add_argument("--out", default="docs/random_rollout.png", help="PNG to write")
+    parser.add_argument("--out", default="runs/random_rollout.png", help="PNG to write")
     args = parser.parse_args(argv)
     if args.num_envs < 1:
         parser.error(f"--num-envs must be >= 1, got {args.num_envs}")
