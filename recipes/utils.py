@@ -41,14 +41,56 @@ def check_device(value) -> None:
         raise ValueError(f"device={value!r}, but torch finds no CUDA device here: use device=cpu or device=auto")
 
 
+# fields whose change makes a checkpoint's networks or buffers the wrong shape or meaning
+RESUME_FIELDS = ("algorithm", "env.name", "env.model", "env.num_envs", "env.max_steps", "network",
+                 "replay_buffer.size", "replay_buffer.demo_size", "replay_buffer.her", "silp.bc",
+                 "source", "source_run_dir")
+# fields whose presence (set or null) must match; their value may change on resume
+RESUME_PRESENCE_FIELDS = ("eval.actor_average_decay",)
+
+
+def check_resume(cfg, run_dir: Path) -> bool:
+    """Whether ``cfg.resume`` finds a checkpoint in ``run_dir``; refuses a config that differs from the run's own.
+
+    A resume whose config differs from the checkpointed run's ``config.yaml`` in a field of
+    :data:`RESUME_FIELDS` raises a ValueError naming the field, before anything is written.
+    ``resume=true`` with no checkpoint says so and the run starts fresh.
+    """
+    if not cfg.resume:
+        return False
+    if not checkpoint_exists(run_dir / "checkpoint"):
+        print(f"resume=true, but {run_dir / 'checkpoint'} holds no checkpoint: starting a new run")
+        return False
+    saved_path = run_dir / "config.yaml"
+    if saved_path.exists():
+        saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
+        now = OmegaConf.to_container(cfg, resolve=True)
+        for field in (*RESUME_FIELDS, *RESUME_PRESENCE_FIELDS):
+            old, new = _dotted(saved, field), _dotted(now, field)
+            if field in RESUME_PRESENCE_FIELDS:
+                old, new = ("set" if old is not None else None), ("set" if new is not None else None)
+            if old != new:
+                raise ValueError(f"resume: {field} is {new!r} here but {old!r} in the checkpointed run "
+                                 f"({saved_path}); resume with the run's own config or use another run_dir")
+    return True
+
+
+def _dotted(tree, field: str):
+    for key in field.split("."):
+        if not isinstance(tree, dict) or key not in tree:
+            return None
+        tree = tree[key]
+    return tree
+
+
 def start_run(cfg) -> tuple[torch.device, Path]:
     """What every recipe does first: ``(device, run_dir)``.
 
-    Resolves ``cfg.device`` ("auto": CUDA when there is one), sets torch's
-    threads (``cfg.threads``, 0 leaves the default), seeds torch, numpy and
-    ``random`` with ``cfg.seed``, creates ``cfg.run_dir`` and saves the resolved
-    config there as ``config.yaml``: what rebuilds a run's networks from its
-    checkpoint (``load_trained_networks``) and what a report cites.
+    Resolves ``cfg.device`` ("auto": CUDA when there is one), checks a resume against the
+    checkpointed run's config (:func:`check_resume`), sets torch's threads (``cfg.threads``,
+    0 leaves the default), seeds torch, numpy and ``random`` with ``cfg.seed``, creates
+    ``cfg.run_dir`` and saves the resolved config there as ``config.yaml``: what rebuilds a
+    run's networks from its checkpoint (``load_trained_networks``) and what a report cites.
     """
     check_device(cfg.device)
     device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
@@ -60,6 +102,7 @@ def start_run(cfg) -> tuple[torch.device, Path]:
     run_dir = Path(cfg.run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise ValueError(f"run_dir {str(run_dir)!r} is a file: give a directory (it is created if missing)")
+    check_resume(cfg, run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
     return device, run_dir

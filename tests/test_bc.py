@@ -239,8 +239,8 @@ def test_resume_after_completion_does_not_collect_again(bc_run):
     # resuming with other collection settings than the cache's is refused
     with pytest.raises(ValueError, match="n_demos"):
         bc.run(compose_config("bc", [*overrides, "resume=true", "n_demos=101"]))
-    # so is resuming with other network inputs than the demonstrations hold
-    with pytest.raises(ValueError, match="observation_keys"):
+    # so is resuming with other network inputs than the checkpointed run's (the field is named)
+    with pytest.raises(ValueError, match="resume: network is"):
         bc.run(compose_config("bc", [*overrides, "resume=true", "network.goal_relative=false"]))
 
 

@@ -104,3 +104,24 @@ def test_bad_values_are_rejected_by_the_library_naming_the_parameter(tmp_path, o
         sac_silp.train(cfg)
     assert name in str(err.value)
     assert not (tmp_path / "run" / "checkpoint").exists()
+
+
+def test_resume_with_a_changed_network_is_refused_before_anything_is_written(tmp_path):
+    run_dir = tmp_path / "run"
+    saved = config(*TINY, f"run_dir={run_dir}")
+    utils.start_run(saved)
+    (run_dir / "checkpoint").mkdir()
+    torch.save({}, run_dir / "checkpoint" / "state.pt")  # what checkpoint_exists looks for
+    before = (run_dir / "config.yaml").read_text()
+    changed = config(*TINY, f"run_dir={run_dir}", "resume=true", "network.hidden_sizes=[64,64]")
+    with pytest.raises(ValueError, match="resume: network is"):
+        utils.start_run(changed)
+    assert (run_dir / "config.yaml").read_text() == before
+    # the same config resumes; a field that does not shape networks or buffers may change
+    assert utils.check_resume(config(*TINY, f"run_dir={run_dir}", "resume=true", "optim.lr=1e-4"), run_dir)
+
+
+def test_resume_without_a_checkpoint_says_so_and_starts_fresh(tmp_path, capsys):
+    cfg = config(*TINY, f"run_dir={tmp_path / 'run'}", "resume=true")
+    assert utils.check_resume(cfg, tmp_path / "run") is False
+    assert "holds no checkpoint: starting a new run" in capsys.readouterr().out
