@@ -56,7 +56,7 @@ def check_resume(cfg, run_dir: Path) -> bool:
     :data:`RESUME_FIELDS` raises a ValueError naming the field, before anything is written.
     ``resume=true`` with no checkpoint says so and the run starts fresh.
     """
-    if not cfg.resume:
+    if not cfg.get("resume", False):  # prm.py has no resume
         return False
     if not checkpoint_exists(run_dir / "checkpoint"):
         print(f"resume=true, but {run_dir / 'checkpoint'} holds no checkpoint: starting a new run")
