@@ -116,3 +116,12 @@ def test_recipe_refuses_a_non_integer_seed(tmp_path):
     with pytest.raises(ConfigCompositionException) as err:
         _train(tmp_path, f"run_dir={tmp_path / 'run'}", "seed=abc")
     assert "seed" in f"{err.value} {err.value.__cause__}"
+
+
+def test_replay_buffers_show_their_own_signature():
+    import inspect
+
+    from torchrl_silp.data import GoalRelabelingReplayBuffer
+
+    assert list(inspect.signature(DemoReplayBuffer).parameters)[:2] == ["model", "capacity"]
+    assert "her_ratio" in inspect.signature(GoalRelabelingReplayBuffer).parameters

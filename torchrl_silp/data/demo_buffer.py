@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import json
 import time
 from collections.abc import Sequence
@@ -178,6 +179,17 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
             self.planning_time = stats["planning_time"]
             self.episodes_planned = stats["episodes_planned"]
             self.demos_added = stats["demos_added"]
+
+
+def own_signature(cls: type) -> type:
+    """Give a replay-buffer subclass its ``__init__``'s signature: TorchRL's ``ReplayBuffer.__new__``
+    (``*args, use_ray_service=...``) is what ``inspect.signature`` would show otherwise."""
+    init = inspect.signature(cls.__init__)
+    cls.__signature__ = init.replace(parameters=list(init.parameters.values())[1:])
+    return cls
+
+
+own_signature(DemoReplayBuffer)
 
 
 def _count_episodes(episodes: TensorDictBase) -> int:

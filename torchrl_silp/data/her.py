@@ -7,6 +7,7 @@ from tensordict import TensorDictBase
 from torchrl.data import HERReplayBuffer, LazyTensorStorage
 from torchrl.data.replay_buffers.her import HindsightStrategy
 
+from torchrl_silp.data.demo_buffer import own_signature
 from torchrl_silp.models.base import as_model
 
 __all__ = ["GoalRelabelingReplayBuffer", "HER_STRATEGIES"]
@@ -120,3 +121,6 @@ class GoalRelabelingReplayBuffer(HERReplayBuffer):
             data.set(("next", "truncated"), truncated)
             data.set(("next", "done"), terminated | truncated)
         return data, info
+
+
+own_signature(GoalRelabelingReplayBuffer)
