@@ -276,6 +276,7 @@ class TaskModel(ABC):
         margin = self.motion_margin(h)
         t = torch.linspace(0, 1, n, dtype=config_from.dtype, device=config_from.device).view(n, 1, 1)
         flat_from, flat_delta = config_from.reshape(-1, self.config_dim), delta.reshape(-1, self.config_dim)
+        flat_to = config_to.reshape(-1, self.config_dim)
         flat_scene = scene.reshape(flat_from.shape[0])
         rows = flat_from.shape[0]
         # chunks of rows bound the (samples x rows x spheres) temporaries however large the batch
@@ -283,6 +284,8 @@ class TaskModel(ABC):
         flag_parts, goal_parts = [], []
         for lo in range(0, max(rows, 1), step):
             q = flat_from[lo : lo + step] + t * flat_delta[lo : lo + step]  # (n, r, D)
+            # the last sample is the end itself (from + delta can differ from it in the last bits)
+            q = torch.cat([q[:-1], flat_to[lo : lo + step].unsqueeze(0)])
             part = flat_scene[lo : lo + step]
             flags, goals = self.collision_flags(q, part.unsqueeze(0).expand(n, *part.batch_size), margin)
             combined = flags[0]
