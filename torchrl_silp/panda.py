@@ -32,7 +32,7 @@ import pytorch_kinematics as pk
 import torch
 from torch import nn
 
-from torchrl_silp.robot import CollisionPrimitive, _parse_collisions, _rpy_to_matrix, read_urdf
+from torchrl_silp.robot import CollisionPrimitive, _parse_collisions, origin_matrix, read_urdf
 
 __all__ = ["Panda", "panda_urdf_path"]
 
@@ -50,14 +50,7 @@ def _urdf_joints(urdf_text: str) -> dict[str, dict]:
     """Joint name -> float64 origin (4x4), type, axis and limits, read from the URDF text."""
     joints = {}
     for joint in ET.fromstring(urdf_text).iter("joint"):
-        origin = joint.find("origin")
-        xyz, rpy = np.zeros(3), np.zeros(3)
-        if origin is not None:
-            xyz = np.array([float(v) for v in origin.get("xyz", "0 0 0").split()])
-            rpy = np.array([float(v) for v in origin.get("rpy", "0 0 0").split()])
-        T = np.eye(4)
-        T[:3, :3] = _rpy_to_matrix(rpy)
-        T[:3, 3] = xyz
+        T = origin_matrix(joint.find("origin"))
         axis = joint.find("axis")
         limit = joint.find("limit")
         joints[joint.get("name")] = {

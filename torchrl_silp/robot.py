@@ -49,6 +49,18 @@ def read_urdf(path: str) -> str:
         raise ValueError(f"urdf_path: cannot read URDF file {path!r}: {err}") from err
 
 
+def origin_matrix(origin) -> np.ndarray:
+    """The 4x4 pose (float64) of a URDF ``<origin xyz rpy>`` element; identity when it is None."""
+    xyz, rpy = np.zeros(3), np.zeros(3)
+    if origin is not None:
+        xyz = np.array([float(v) for v in origin.get("xyz", "0 0 0").split()])
+        rpy = np.array([float(v) for v in origin.get("rpy", "0 0 0").split()])
+    T = np.eye(4)
+    T[:3, :3] = _rpy_to_matrix(rpy)
+    T[:3, 3] = xyz
+    return T
+
+
 def _rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
     # URDF convention: R = Rz(yaw) @ Ry(pitch) @ Rx(roll)
     r, p, y = rpy
@@ -117,15 +129,7 @@ def _parse_collisions(urdf_text: str) -> list[CollisionPrimitive]:
     prims: list[CollisionPrimitive] = []
     for link in root.iter("link"):
         for col in link.findall("collision"):
-            origin = col.find("origin")
-            xyz = np.zeros(3)
-            rpy = np.zeros(3)
-            if origin is not None:
-                xyz = np.array([float(v) for v in origin.get("xyz", "0 0 0").split()])
-                rpy = np.array([float(v) for v in origin.get("rpy", "0 0 0").split()])
-            T = np.eye(4)
-            T[:3, :3] = _rpy_to_matrix(rpy)
-            T[:3, 3] = xyz
+            T = origin_matrix(col.find("origin"))
             geom = col.find("geometry")
             if geom is None or len(geom) != 1:
                 raise ValueError(f"urdf: link {link.get('name')!r} has a <collision> without one geometry")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from abc import abstractmethod
+
 import torch
 from tensordict import TensorDict
 
@@ -88,9 +90,9 @@ class ArmReach(TaskModel):
         """The TCP position ``(..., 3)`` (metres, base frame)."""
         return self.robot.fk(config)
 
+    @abstractmethod
     def self_pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Sphere index pairs ``(a, b)`` of the self-collision test."""
-        raise NotImplementedError
 
     def task_filter(self, config: torch.Tensor, tcp: torch.Tensor) -> torch.Tensor:
         """Which free configurations may start or end a task: bool ``(N,)`` (all, by default)."""
