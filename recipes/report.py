@@ -384,6 +384,18 @@ def sweep_commands(runs: dict[str, list[dict]]) -> list[str]:
     return sorted(c for c in commands if c)
 
 
+def provenance_lines(runs: dict[str, list[dict]], budget_heading: str) -> list[str]:
+    """The budget, machine and sweep-command lines every block ends with."""
+    budget = [(key, text, config_values(runs, key)) for key, text in BUDGET_KEYS.items()]
+    lines = [budget_heading, ""]
+    lines += [f"- `{key}`, {text}: {values}" for key, text, values in budget if values is not None]
+    lines += ["", "Machine (each run's sweep.json and config.yaml):", "", *machine_lines(runs), ""]
+    commands = sweep_commands(runs)
+    if commands:
+        lines += ["Sweep command(s):", "", *[f"- `{c}`" for c in commands], ""]
+    return lines
+
+
 # ------------------------------------------------------------------ the block
 def block(runs: dict[str, list[dict]], results: Path, figure: Path | None, out: Path, command: str,
           plotted: list[str]) -> str:
@@ -407,13 +419,7 @@ def block(runs: dict[str, list[dict]], results: Path, figure: Path | None, out: 
         lines += [f"Rows with fewer than {PAPER_SEEDS} seeds:", "", *notes, ""]
     lines += ["Orderings reported by the paper, on our means:", ""]
     lines += [f"- {status}: {text} ({numbers})" for text, status, numbers in checks(runs)]
-    budget = [(key, text, config_values(runs, key)) for key, text in BUDGET_KEYS.items()]
-    lines += ["", "Budget (the runs' config.yaml; the paper: 1K epochs of 10 episodes):", ""]
-    lines += [f"- `{key}`, {text}: {values}" for key, text, values in budget if values is not None]
-    lines += ["", "Machine (each run's sweep.json and config.yaml):", "", *machine_lines(runs), ""]
-    commands = sweep_commands(runs)
-    if commands:
-        lines += ["Sweep command(s):", "", *[f"- `{c}`" for c in commands], ""]
+    lines += ["", *provenance_lines(runs, "Budget (the runs' config.yaml; the paper: 1K epochs of 10 episodes):")]
     if figure is not None and plotted:
         rel = os.path.relpath(figure, out.parent)
         lines += [f"![Success rates during training]({rel})", "",
@@ -491,13 +497,7 @@ def tasks_block(runs: dict[str, list[dict]], results: Path, figure: Path | None,
         *tasks_checks(runs),
         "",
     ]
-    budget = [(key, text, config_values(runs, key)) for key, text in BUDGET_KEYS.items()]
-    lines += ["Budget (the runs' config.yaml):", ""]
-    lines += [f"- `{key}`, {text}: {values}" for key, text, values in budget if values is not None]
-    lines += ["", "Machine (each run's sweep.json and config.yaml):", "", *machine_lines(runs), ""]
-    commands = sweep_commands(runs)
-    if commands:
-        lines += ["Sweep command(s):", "", *[f"- `{c}`" for c in commands], ""]
+    lines += provenance_lines(runs, "Budget (the runs' config.yaml):")
     if figure is not None and plotted:
         rel = os.path.relpath(figure, out.parent)
         lines += [f"![Success rates during training, both tasks]({rel})", "",
