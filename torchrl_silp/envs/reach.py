@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import torch
@@ -282,6 +283,39 @@ class UR5eReachEnv(TransformedEnv):
     def robot(self) -> UR5e:
         """The model's :class:`~torchrl_silp.robot.UR5e`."""
         return self.base_env.model.robot
+
+    # ------------------------------------------------ deprecated flat-observation API
+    # The task's functions moved to the model (``env.model``), on named states. These aliases keep the
+    # old calls on the 15-D observation working; the layout is this env's own.
+    def _state(self, obs: torch.Tensor) -> TensorDict:
+        if not isinstance(obs, torch.Tensor) or obs.shape[-1:] != (15,):
+            raise ValueError(f"obs must be a tensor of shape (..., 15), got {getattr(obs, 'shape', type(obs))}")
+        parts = obs.split([3, 3, 6, 3], dim=-1)
+        return TensorDict(dict(zip(self.model.observation_keys, parts)), batch_size=obs.shape[:-1])
+
+    def transition(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Deprecated: ``model.transition`` on named states. The next 15-D observation."""
+        warnings.warn("UR5eReachEnv.transition is deprecated: use env.model.transition", DeprecationWarning, 2)
+        return self.model.observation(self.model.transition(self._state(obs), action))
+
+    def reward(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """Deprecated: ``model.reward`` on named states."""
+        warnings.warn("UR5eReachEnv.reward is deprecated: use env.model.reward", DeprecationWarning, 2)
+        return self.model.reward(self._state(obs), self._state(next_obs))
+
+    def collides(self, q3: torch.Tensor, obstacle: torch.Tensor) -> torch.Tensor:
+        """Deprecated: ``model.collides``."""
+        warnings.warn("UR5eReachEnv.collides is deprecated: use env.model.collides", DeprecationWarning, 2)
+        return self.model.collides(q3, obstacle)
+
+    def edge_collision_free(self, q_from, q_to, obstacle, step_size: float | None = None) -> torch.Tensor:
+        """Deprecated: ``model.motion_collision_flags`` (the env's own motion check)."""
+        warnings.warn("UR5eReachEnv.edge_collision_free is deprecated: use env.model.motion_collision_flags",
+                      DeprecationWarning, 2)
+        batch = torch.broadcast_shapes(q_from.shape[:-1], q_to.shape[:-1], obstacle.shape[:-1])
+        scene = TensorDict(obstacle=obstacle.expand(*batch, 6), batch_size=batch)
+        flags, _ = self.model.motion_collision_flags(q_from.expand(*batch, 3), q_to.expand(*batch, 3), scene, step_size)
+        return flags.squeeze(-1) == 0
 
     @property
     def collision_type(self) -> int | None:
