@@ -204,3 +204,57 @@ def test_mixed_batches_carry_the_named_state(env, model, episodes):
     assert match.any(1).all()
     assert torch.equal(rows["observation"], model.observation(rows))
     assert torch.equal(rows["next", "observation"], model.observation(rows["next"]))
+
+
+def _dir_bytes(path):
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def test_checkpoint_holds_contents_not_capacity(env, episodes, tmp_path):
+    small = filled(env, episodes, n_demo_rows=77)
+    small.dumps(tmp_path / "small")
+    rows = len(small)
+    huge = MixedReplay(DemoReplayBuffer(env, capacity=2_000_000), interaction_capacity=5_000_000)
+    huge.extend(episodes)
+    huge.demo_buffer.add_demonstrations(small.demo_buffer[:77])
+    huge.dumps(tmp_path / "huge")
+    # 7M rows of capacity, a few hundred of them filled: the checkpoint is the filled rows' size
+    row_bytes = sum(v.element_size() * v[0].numel() for v in small.interaction_buffer[:1].values(True, True))
+    assert _dir_bytes(tmp_path / "huge") < 2 * rows * row_bytes + 200_000
+    assert abs(_dir_bytes(tmp_path / "huge") - _dir_bytes(tmp_path / "small")) < 50_000
+
+
+def test_checkpoint_of_a_wrapped_circular_buffer(tmp_path):
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from torchrl_silp.data import FilledStorageCheckpointer
+
+    def buffer():
+        return TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=4, checkpointer=FilledStorageCheckpointer())
+
+    rb = buffer()
+    rb.extend(TensorDict({"x": torch.arange(23.0)}, [23]))  # rows hold 20..22 then 13..19; the cursor is at row 3
+    rb.dumps(tmp_path)
+    restored = buffer()
+    restored.loads(tmp_path)
+    assert len(restored) == 10 and restored.storage.max_size == 10
+    assert restored.storage[:10]["x"].tolist() == [20, 21, 22, 13, 14, 15, 16, 17, 18, 19]
+    # the next write replaces the oldest row (13), as it would have in the original buffer
+    rb.extend(TensorDict({"x": torch.tensor([99.0])}, [1]))
+    restored.extend(TensorDict({"x": torch.tensor([99.0])}, [1]))
+    assert restored.storage[:10]["x"].tolist() == rb.storage[:10]["x"].tolist() == [20, 21, 22, 99, 14, 15, 16, 17, 18, 19]
+
+
+def test_checkpoint_written_by_torchrl_still_loads(tmp_path):
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from torchrl_silp.data import FilledStorageCheckpointer
+
+    plain = TensorDictReplayBuffer(storage=LazyTensorStorage(50))  # TorchRL's own checkpointer: all 50 rows
+    plain.extend(TensorDict({"x": torch.arange(7.0)}, [7]))
+    plain.dumps(tmp_path)
+    restored = TensorDictReplayBuffer(storage=LazyTensorStorage(50), checkpointer=FilledStorageCheckpointer())
+    restored.loads(tmp_path)
+    assert len(restored) == 7 and restored.storage[:7]["x"].tolist() == list(range(7))

@@ -4,6 +4,7 @@ sampler, hindsight relabelling, and the assembly of episodes that span collector
 from torchrl_silp.data.demo_buffer import TRANSITION_KEYS, DemoReplayBuffer, MixedReplay, transition_keys
 from torchrl_silp.data.episodes import EpisodeAssembler, cut_episodes
 from torchrl_silp.data.her import HER_STRATEGIES, GoalRelabelingReplayBuffer
+from torchrl_silp.data.storage import FilledStorageCheckpointer
 
 __all__ = [
     "DemoReplayBuffer",
@@ -14,4 +15,5 @@ __all__ = [
     "HER_STRATEGIES",
     "TRANSITION_KEYS",
     "transition_keys",
+    "FilledStorageCheckpointer",
 ]

@@ -12,6 +12,7 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
+from torchrl_silp.data.storage import FilledStorageCheckpointer
 from torchrl_silp.models.base import as_model
 from torchrl_silp.planning import plan_demonstrations
 from torchrl_silp.planning.demos import check_planner_kwargs
@@ -124,6 +125,7 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
             if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
                 raise ValueError(f"capacity must be a positive int, got {capacity!r}")
             storage = LazyTensorStorage(capacity, device=_storage_device(device))
+            kwargs.setdefault("checkpointer", FilledStorageCheckpointer())
         planner_kwargs = dict(planner_kwargs or {})
         if "observation_transform" in planner_kwargs:
             raise ValueError("pass observation_transform to DemoReplayBuffer, not in planner_kwargs")
@@ -287,7 +289,8 @@ class MixedReplay:
             if isinstance(interaction_capacity, bool) or not isinstance(interaction_capacity, int) or interaction_capacity < 1:
                 raise ValueError(f"interaction_capacity must be a positive int, got {interaction_capacity!r}")
             interaction_buffer = TensorDictReplayBuffer(
-                storage=LazyTensorStorage(interaction_capacity, device=_storage_device(device))
+                storage=LazyTensorStorage(interaction_capacity, device=_storage_device(device)),
+                checkpointer=FilledStorageCheckpointer(),
             )
         self.demo_buffer = demo_buffer
         self.interaction_buffer = interaction_buffer

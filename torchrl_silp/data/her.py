@@ -8,6 +8,7 @@ from torchrl.data import HERReplayBuffer, LazyTensorStorage
 from torchrl.data.replay_buffers.her import HindsightStrategy
 
 from torchrl_silp.data.demo_buffer import own_signature
+from torchrl_silp.data.storage import FilledStorageCheckpointer
 from torchrl_silp.models.base import as_model
 
 __all__ = ["GoalRelabelingReplayBuffer", "HER_STRATEGIES"]
@@ -79,6 +80,7 @@ class GoalRelabelingReplayBuffer(HERReplayBuffer):
             if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
                 raise ValueError(f"capacity must be a positive int, got {capacity!r}")
             storage = LazyTensorStorage(capacity, device="auto" if device is None else torch.device(device))
+            kwargs.setdefault("checkpointer", FilledStorageCheckpointer())
         super().__init__(
             reward_fn=self._relabelled_reward,
             her_ratio=float(her_ratio),
