@@ -17,7 +17,6 @@ import warnings
 from pathlib import Path
 
 import hydra
-import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
 from torchrl._utils import timeit
@@ -62,6 +61,10 @@ def train(cfg: DictConfig) -> dict:
     counters, history, logger_state = utils.restore(ckpt_dir, cfg, loss, optimizers, averaged, buffers, assembler,
                                                     env) if resumed else (utils.new_counters(), [], None)
 
+    # the steps after the checkpoint are redone (all of them when starting afresh): no step logged twice
+    dropped = utils.truncate_logs(run_dir / "logs", counters["frames"])
+    if dropped:
+        print(f"dropped {dropped} log rows after frame {counters['frames']}: the run redoes those steps")
     logger = None
     if cfg.logger.backend:
         logger = get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"),
@@ -69,9 +72,12 @@ def train(cfg: DictConfig) -> dict:
         if not resumed:
             logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
 
+    last_saved = [time.monotonic()]
+
     def checkpoint():
         utils.save_checkpoint(ckpt_dir, utils.training_state(loss, optimizers, averaged, counters, history, assembler,
                                                              logger, env), buffers)
+        last_saved[0] = time.monotonic()
 
     def run_evaluation(return_rollout=False):
         kwargs = dict(n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, model=model, max_steps=cfg.env.max_steps,
@@ -104,60 +110,65 @@ def train(cfg: DictConfig) -> dict:
             averaged.update_parameters(actor)
         return loss_td.detach()
 
-    pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], disable=not cfg.progress)
+    # frames on the bar; the updates and the phase beside it (the ETA is tqdm's smoothed recent rate)
+    pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], unit="frame", disable=not cfg.progress)
+    status = {"phase": "random actions" if counters["frames"] < cfg.collector.init_random_frames else "training"}
+
+    def show(**fields):
+        status.update(fields, updates=f"{counters['updates']:,}")
+        pbar.set_postfix(status, refresh=True)
+
     last_eval_frames = history[-1]["frames"] if history else 0
     tick = time.perf_counter()
-    for batch in (collector if remaining > 0 else []):
-        counters["iterations"] += 1
-        counters["frames"] += batch.numel()
-        counters["episodes"] += int(batch["next", "done"].sum())
-        counters["collisions"] += int(batch["next", "collision"].sum())
-        counters["swept_collisions"] += int(batch["next", "swept_collision"].sum())
-        finished = assembler.push(batch) if cfg.silp.demos or her else None
-        with timeit("rb - extend"):
-            if not her:
-                buffers.extend(batch)
-            elif finished is not None:  # hindsight relabelling reads episode boundaries from storage order
-                buffers.extend(finished)
-        if finished is not None and cfg.silp.demos:
-            with timeit("plan"):
-                buffers.demo_buffer.extend(finished)
-        losses = []
-        if counters["frames"] >= cfg.collector.init_random_frames and len(buffers):
-            with timeit("train"):
-                for _ in range(updates_per_batch):
-                    losses.append(update(buffers.sample()))
-                    counters["updates"] += 1
-        counters["train_wall_s"] += time.perf_counter() - tick
-        counters["planning_s"] = buffers.demo_buffer.planning_time
-        metrics = {"train/collisions": counters["collisions"], "train/swept_collisions": counters["swept_collisions"],
-                   "train/episodes": counters["episodes"],
-                   "train/demos": len(buffers.demo_buffer), "time/train_wall_s": counters["train_wall_s"]}
-        ended = batch["next", "done"]
-        if ended.any():
-            metrics["train/episode_reward"] = batch["next", "episode_reward"][ended].mean().item()
-            metrics["train/success_rate"] = batch["next", "success"][ended].float().mean().item()
-        if losses:
-            for key, value in torch.stack(losses).items():
-                if key.startswith("loss_") or key in ("alpha", "bc_filter_fraction", "bc_mse"):
-                    metrics[f"train/{key}"] = value.float().mean().item()
-        if counters["frames"] - last_eval_frames >= cfg.eval.every_frames:
-            last_eval_frames = counters["frames"]
-            with timeit("eval"):
-                metrics.update({f"eval/{k}": v for k, v in run_evaluation().items()})
-            pbar.set_postfix(success=f"{metrics['eval/success_rate']:.3f}", demos=len(buffers.demo_buffer))
-        metrics.update({f"time/{k}": v for k, v in timeit.todict(percall=False).items()})
-        utils.log_metrics(logger, metrics, counters["frames"])
-        pbar.update(batch.numel())
-        if counters["iterations"] % cfg.checkpoint.every_iters == 0:
-            checkpoint()
-        if cfg.stop_at_success is not None and history and history[-1]["success_rate"] >= cfg.stop_at_success:
-            break
-        if cfg.max_train_wall_s and counters["train_wall_s"] >= cfg.max_train_wall_s:
-            break
-        tick = time.perf_counter()
+    with utils.StopRequest() as stop:
+        for batch in (collector if remaining > 0 else []):
+            counters["iterations"] += 1
+            counters["frames"] += batch.numel()
+            counters["episodes"] += int(batch["next", "done"].sum())
+            counters["collisions"] += int(batch["next", "collision"].sum())
+            counters["swept_collisions"] += int(batch["next", "swept_collision"].sum())
+            finished = assembler.push(batch) if cfg.silp.demos or her else None
+            with timeit("rb - extend"):
+                if not her:
+                    buffers.extend(batch)
+                elif finished is not None:  # hindsight relabelling reads episode boundaries from storage order
+                    buffers.extend(finished)
+            if finished is not None and cfg.silp.demos:
+                with timeit("plan"):
+                    buffers.demo_buffer.extend(finished)
+            losses = []
+            if counters["frames"] >= cfg.collector.init_random_frames and len(buffers):
+                with timeit("train"):
+                    for i in range(updates_per_batch):
+                        losses.append(update(buffers.sample()))
+                        counters["updates"] += 1
+                        if i % 20 == 0:
+                            show(phase="training")
+            counters["train_wall_s"] += time.perf_counter() - tick
+            counters["planning_s"] = buffers.demo_buffer.planning_time
+            metrics = utils.batch_metrics(batch, losses, counters, len(buffers.demo_buffer))
+            if counters["frames"] - last_eval_frames >= cfg.eval.every_frames:
+                last_eval_frames = counters["frames"]
+                with timeit("eval"):
+                    metrics.update({f"eval/{k}": v for k, v in run_evaluation().items()})
+                show(success=f"{metrics['eval/success_rate']:.3f}", demos=len(buffers.demo_buffer))
+            metrics.update({f"time/{k}": v for k, v in timeit.todict(percall=False).items()})
+            utils.log_metrics(logger, metrics, counters["frames"])
+            pbar.update(batch.numel())
+            if (stop.requested or counters["iterations"] % cfg.checkpoint.every_iters == 0
+                    or time.monotonic() - last_saved[0] >= cfg.checkpoint.every_s):
+                checkpoint()
+            if stop.requested:
+                break
+            if cfg.stop_at_success is not None and history and history[-1]["success_rate"] >= cfg.stop_at_success:
+                break
+            if cfg.max_train_wall_s and counters["train_wall_s"] >= cfg.max_train_wall_s:
+                break
+            tick = time.perf_counter()
     collector.shutdown()
     pbar.close()
+    if stop.requested:
+        stop.exit(f"stopped at {counters['frames']} frames, checkpoint in {ckpt_dir}: continue with resume=true")
 
     final, rollout = run_evaluation(return_rollout=True)
     checkpoint()

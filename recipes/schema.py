@@ -96,6 +96,7 @@ class EvalConfig:
 @dataclass
 class CheckpointConfig:
     every_iters: int = 25
+    every_s: float = 300.0
 
 
 @dataclass
@@ -111,7 +112,7 @@ class TrainConfig:
     device: str = "cpu"
     threads: int = 0
     run_dir: str = "runs/${logger.exp_name}/seed${seed}"
-    resume: bool = False
+    resume: Any = False
     progress: bool = True
     stop_at_success: Optional[float] = None
     max_train_wall_s: float = 0.0
@@ -177,7 +178,7 @@ class BCConfig:
     device: str = "cpu"
     threads: int = 0
     run_dir: str = "runs/bc_${source}/seed${seed}"
-    resume: bool = False
+    resume: Any = False
     progress: bool = True
     env: EnvConfig = field(default_factory=EnvConfig)
     network: BCNetworkConfig = field(default_factory=BCNetworkConfig)

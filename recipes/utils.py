@@ -12,6 +12,9 @@ import math
 import os
 import random
 import shutil
+import signal
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +50,7 @@ RESUME_FIELDS = ("algorithm", "env.name", "env.model", "env.num_envs", "env.max_
                  "source", "source_run_dir")
 # fields whose presence (set or null) must match; their value may change on resume
 RESUME_PRESENCE_FIELDS = ("eval.actor_average_decay",)
+RESUME_MODES = (False, True, "must")
 
 
 def check_resume(cfg, run_dir: Path) -> bool:
@@ -54,11 +58,16 @@ def check_resume(cfg, run_dir: Path) -> bool:
 
     A resume whose config differs from the checkpointed run's ``config.yaml`` in a field of
     :data:`RESUME_FIELDS` raises a ValueError naming the field, before anything is written.
-    ``resume=true`` with no checkpoint says so and the run starts fresh.
+    ``resume=true`` with no checkpoint says so and the run starts fresh; ``resume=must`` refuses.
     """
-    if not cfg.get("resume", False):  # prm.py has no resume
+    resume = cfg.get("resume", False)  # prm.py has no resume
+    if resume not in RESUME_MODES:
+        raise ValueError(f"resume must be true, false or 'must', got {resume!r}")
+    if not resume:
         return False
     if not checkpoint_exists(run_dir / "checkpoint"):
+        if resume == "must":
+            raise FileNotFoundError(f"resume=must, but {run_dir / 'checkpoint'} holds no checkpoint")
         print(f"resume=true, but {run_dir / 'checkpoint'} holds no checkpoint: starting a new run")
         return False
     saved_path = run_dir / "config.yaml"
@@ -319,6 +328,71 @@ def _checkpoint_dir(path: Path) -> Path | None:
     return None
 
 
+class StopRequest:
+    """SIGTERM / SIGINT while training: the loop finishes its batch, checkpoints and stops.
+
+    Used as a context manager around the loop (the handlers are those of the main thread only;
+    elsewhere, e.g. in a thread of a Ray worker, nothing is installed and the default
+    behaviour stays). A second signal gets the previous handler: it stops at once.
+    :meth:`exit` then ends the process the way the signal would have: ``KeyboardInterrupt``
+    for SIGINT, exit status 143 for SIGTERM.
+    """
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+    def __init__(self):
+        self.signum: int | None = None
+        self._previous: dict = {}
+
+    def __enter__(self) -> "StopRequest":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._restore()
+
+    def _restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+
+    def _handle(self, signum, frame) -> None:
+        self.signum = signum
+        self._restore()
+        print(f"{signal.Signals(signum).name}: stopping after this batch with a checkpoint "
+              "(send it again to stop at once)", flush=True)
+
+    @property
+    def requested(self) -> bool:
+        return self.signum is not None
+
+    def exit(self, message: str) -> None:
+        print(message, flush=True)
+        if self.signum == signal.SIGINT:
+            raise KeyboardInterrupt(message)
+        raise SystemExit(128 + self.signum)
+
+
+def truncate_logs(log_dir: Path, last_step: int) -> int:
+    """Drop the rows of a run's CSV scalar logs written after step ``last_step``; returns how many.
+
+    A resumed run redoes the steps after its checkpoint (and a run started afresh in the
+    same ``run_dir`` all of them): their first rows go, so that no step appears twice.
+    TorchRL's ``CSVLogger`` appends ``step,value`` rows to ``<name>.csv``.
+    """
+    dropped = 0
+    for path in sorted(Path(log_dir).rglob("*.csv")):
+        rows = path.read_text().splitlines(keepends=True)
+        kept = [row for row in rows if int(float(row.split(",", 1)[0])) <= last_step]
+        if len(kept) != len(rows):
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text("".join(kept))
+            os.replace(tmp, path)
+            dropped += len(rows) - len(kept)
+    return dropped
+
+
 def new_counters() -> dict:
     return {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0, "swept_collisions": 0,
             "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None}
@@ -332,6 +406,7 @@ def training_state(loss, optimizers, averaged, counters, history, assembler, log
         "counters": dict(counters), "history": list(history), "assembler": assembler.state_dict(),
         "logger": logger.state_dict() if hasattr(logger, "state_dict") else None,
         "torch_rng": torch.get_rng_state(), "env_rng": env.base_env.rng.get_state(),
+        "saved_at": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
 
 
@@ -358,7 +433,9 @@ def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, a
         buffers.extend(cut_episodes(leftover))
     if leftover is not None and cfg.silp.demos:
         buffers.demo_buffer.extend(leftover)
-    print(f"resumed from {path}: {state['counters']['frames']} frames, {len(buffers)} transitions in the buffers")
+    counters = state["counters"]
+    print(f"resumed from {path} (saved {state.get('saved_at', 'at an unknown time')}): {counters['frames']} frames, "
+          f"{counters['updates']} updates, {len(buffers)} transitions in the buffers")
     return state["counters"], state["history"], state["logger"]
 
 
@@ -405,6 +482,22 @@ def log_metrics(logger, metrics: dict, step: int) -> None:
         if value is None or (isinstance(value, float) and math.isnan(value)):
             continue
         logger.log_scalar(name, value, step)
+
+
+def batch_metrics(batch, losses: list, counters: dict, demos_stored: int) -> dict:
+    """What the loop logs after a collector batch: the counters, the episodes it ended, the mean losses."""
+    metrics = {"train/collisions": counters["collisions"], "train/swept_collisions": counters["swept_collisions"],
+               "train/episodes": counters["episodes"], "train/demos": demos_stored,
+               "time/train_wall_s": counters["train_wall_s"]}
+    ended = batch["next", "done"]
+    if ended.any():
+        metrics["train/episode_reward"] = batch["next", "episode_reward"][ended].mean().item()
+        metrics["train/success_rate"] = batch["next", "success"][ended].float().mean().item()
+    if losses:
+        for key, value in torch.stack(losses).items():
+            if key.startswith("loss_") or key in ("alpha", "bc_filter_fraction", "bc_mse"):
+                metrics[f"train/{key}"] = value.float().mean().item()
+    return metrics
 
 
 def plot_learning_curve(history: list[dict], path: Path, label: str) -> Path:

@@ -125,3 +125,46 @@ def test_resume_without_a_checkpoint_says_so_and_starts_fresh(tmp_path, capsys):
     cfg = config(*TINY, f"run_dir={tmp_path / 'run'}", "resume=true")
     assert utils.check_resume(cfg, tmp_path / "run") is False
     assert "holds no checkpoint: starting a new run" in capsys.readouterr().out
+
+
+def test_resume_must_refuses_without_a_checkpoint_before_anything_is_written(tmp_path):
+    cfg = config(*TINY, f"run_dir={tmp_path / 'run'}", "resume=must")
+    with pytest.raises(FileNotFoundError, match="resume=must"):
+        utils.start_run(cfg)
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(ValueError, match="resume must be"):
+        utils.start_run(config(*TINY, f"run_dir={tmp_path / 'run'}", "resume=maybe"))
+
+
+def test_truncate_logs_drops_the_rows_after_the_step(tmp_path):
+    scalars = tmp_path / "logs" / "exp" / "scalars"
+    (scalars / "train").mkdir(parents=True)
+    (scalars / "train" / "episodes.csv").write_text("100,1\n200,3\n300,6\n400,9\n")
+    (scalars / "eval").mkdir()
+    (scalars / "eval" / "success_rate.csv").write_text("200,0.5\n400,0.7\n")
+    (tmp_path / "logs" / "exp" / "texts").mkdir()
+    (tmp_path / "logs" / "exp" / "texts" / "hparams0.txt").write_text("400,not a row\n")
+    assert utils.truncate_logs(tmp_path / "logs", 200) == 3
+    assert (scalars / "train" / "episodes.csv").read_text() == "100,1\n200,3\n"
+    assert (scalars / "eval" / "success_rate.csv").read_text() == "200,0.5\n"
+    assert (tmp_path / "logs" / "exp" / "texts" / "hparams0.txt").read_text() == "400,not a row\n"
+    assert utils.truncate_logs(tmp_path / "logs", 200) == 0
+    assert utils.truncate_logs(tmp_path / "logs", 0) == 3  # a run started afresh in the same run_dir
+    assert utils.truncate_logs(tmp_path / "nowhere", 0) == 0
+
+
+def test_stop_request_catches_sigterm_once_then_restores_the_handler():
+    import os
+    import signal
+
+    before = signal.getsignal(signal.SIGTERM)
+    with utils.StopRequest() as stop:
+        assert not stop.requested
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.requested and stop.signum == signal.SIGTERM
+        # the first signal handed the handler back: a second one would act at once
+        assert signal.getsignal(signal.SIGTERM) == before
+        with pytest.raises(SystemExit) as err:
+            stop.exit("stopping")
+        assert err.value.code == 128 + signal.SIGTERM
+    assert signal.getsignal(signal.SIGTERM) == before and signal.getsignal(signal.SIGINT) == signal.default_int_handler

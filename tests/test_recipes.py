@@ -17,7 +17,7 @@ import pytest
 import torch
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_silp.data import EpisodeAssembler
+from torchrl_silp.data import EpisodeAssembler, FilledStorageCheckpointer
 
 RECIPES = Path(__file__).parents[1] / "recipes"
 
@@ -51,7 +51,7 @@ def summary(run_dir: Path) -> dict:
 
 
 def load_buffer(path: Path) -> TensorDictReplayBuffer:
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(5000))
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(5000), checkpointer=FilledStorageCheckpointer())
     buffer.loads(path)
     return buffer
 
@@ -137,53 +137,111 @@ def test_table1_baselines_train(tmp_path, method):
         assert len(interaction) == 300 and out["updates"] == 75
 
 
-def test_resume_after_kill_continues_without_losing_data(tmp_path):
-    run_dir = tmp_path / "run"
-    ckpt = run_dir / "checkpoint"
-    cmd = [sys.executable, str(RECIPES / "sac_silp.py"), *TINY, f"run_dir={run_dir}", "collector.total_frames=100000"]
-    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 240
-    frames = 0
+def logged_steps(run_dir: Path) -> dict[str, list[int]]:
+    """The steps of every CSV scalar log of a run: ``{"train/episodes": [100, 200, ...], ...}``."""
+    root = run_dir / "logs" / "sac_silp" / "scalars"
+    return {str(p.relative_to(root).with_suffix("")): [int(row.split(",")[0]) for row in p.read_text().splitlines()]
+            for p in sorted(root.rglob("*.csv"))}
+
+
+def wait_for(proc: subprocess.Popen, condition, what: str, timeout: float = 240) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert proc.poll() is None, f"the run ended before {what}: {proc.stderr.read()[-3000:]}"
+        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
+        time.sleep(0.2)
+
+
+def saved_counters(ckpt: Path) -> dict | None:
     try:
-        while frames < 300:
-            assert proc.poll() is None, proc.stderr.read()[-3000:]
-            assert time.monotonic() < deadline, "no checkpoint of >= 300 frames within 240 s"
-            time.sleep(0.5)
-            try:
-                frames = torch.load(ckpt / "state.pt", weights_only=False)["counters"]["frames"]
-            except (FileNotFoundError, RuntimeError, EOFError, KeyError):
-                continue
+        return torch.load(ckpt / "state.pt", weights_only=False)["counters"]
+    except (FileNotFoundError, RuntimeError, EOFError, KeyError):
+        return None
+
+
+def start_run(run_dir: Path, *overrides: str) -> subprocess.Popen:
+    cmd = [sys.executable, str(RECIPES / "sac_silp.py"), *TINY, f"run_dir={run_dir}", *overrides]
+    return subprocess.Popen(cmd, cwd=run_dir.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_kill_at_a_random_time_then_resume_loses_and_repeats_nothing(tmp_path):
+    """kill -9 at a random point after the first checkpoint (saved by time: every_iters is out of
+    reach), then resume: counters, buffer contents and logs continue as if never killed."""
+    run_dir, rng = tmp_path / "run", np.random.default_rng()
+    ckpt = run_dir / "checkpoint"
+    delay = float(rng.uniform(0.0, 4.0))
+    proc = start_run(run_dir, "collector.total_frames=100000", "checkpoint.every_iters=100000", "checkpoint.every_s=1.5")
+    try:
+        wait_for(proc, lambda: saved_counters(ckpt) is not None, "checkpoint")
+        time.sleep(delay)
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
 
-    # what the killed run had saved last (it may have saved once more after our read)
+    # what the killed run had saved last (a kill between save_checkpoint's two renames leaves ".old")
     found = ckpt if (ckpt / "state.pt").exists() else ckpt.with_name("checkpoint.old")
-    before = torch.load(found / "state.pt", weights_only=False)["counters"]
+    before = saved_counters(found)
+    assert before is not None and before["iterations"] < 100000, f"(kill {delay:.2f} s after the first checkpoint)"
     interaction = load_buffer(found / "buffers" / "interaction")
     demos = load_buffer(found / "buffers" / "demos")
     n_inter, n_demo = len(interaction), len(demos)
     assert n_inter == before["frames"] > 0
-    assert n_demo > 0
 
-    target = before["frames"] + 200
-    resumed = run_recipe("sac_silp.py", run_dir, f"collector.total_frames={target}", "resume=true")
+    target = before["frames"] + 300
+    resumed = run_recipe("sac_silp.py", run_dir, f"collector.total_frames={target}", "resume=must")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert "resumed from" in resumed.stdout
+    assert f"resumed from {ckpt}" in resumed.stdout and f"{before['frames']} frames" in resumed.stdout
     after = torch.load(ckpt / "state.pt", weights_only=False)["counters"]
-    # counters continue from the checkpoint
     assert after["frames"] == target
-    assert after["iterations"] == before["iterations"] + 2
-    assert after["updates"] == before["updates"] + 2 * 25
+    assert after["iterations"] == before["iterations"] + 3
+    assert after["updates"] == before["updates"] + 3 * 25
     assert after["episodes"] >= before["episodes"] and after["collisions"] >= before["collisions"]
-    # every stored transition is still there, in place, and the new ones follow
+    # every stored transition is still there, in place, and each new one once
     interaction_after = load_buffer(ckpt / "buffers" / "interaction")
     demos_after = load_buffer(ckpt / "buffers" / "demos")
     assert len(interaction_after) == target
     assert (interaction_after.storage[:n_inter] == interaction.storage[:n_inter]).all()
     assert len(demos_after) >= n_demo
     assert (demos_after.storage[:n_demo] == demos.storage[:n_demo]).all()
+    # each batch logged exactly once, in order, the killed run's rows after its checkpoint dropped
+    steps = logged_steps(run_dir)
+    assert steps["train/episodes"] == list(range(100, target + 1, 100))
+    assert all(s == sorted(set(s)) for s in steps.values())
+    assert steps["eval/success_rate"] == list(range(200, target + 1, 200))
     assert summary(run_dir)["frames"] == target
+
+
+def test_sigterm_saves_then_stops_and_resume_continues(tmp_path):
+    run_dir = tmp_path / "run"
+    ckpt = run_dir / "checkpoint"
+    episodes_log = run_dir / "logs" / "sac_silp" / "scalars" / "train" / "episodes.csv"
+    proc = start_run(run_dir, "collector.total_frames=100000", "checkpoint.every_iters=100000", "checkpoint.every_s=1e6")
+    try:
+        wait_for(proc, lambda: episodes_log.exists() and len(episodes_log.read_text().splitlines()) >= 2, "logged batch")
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert "SIGTERM: stopping after this batch" in out and "continue with resume=true" in out
+    # the checkpoint is the state after the last logged batch
+    frames = saved_counters(ckpt)["frames"]
+    assert logged_steps(run_dir)["train/episodes"] == list(range(100, frames + 1, 100))
+    assert not (run_dir / "summary.json").exists()
+    resumed = run_recipe("sac_silp.py", run_dir, f"collector.total_frames={frames + 100}", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert logged_steps(run_dir)["train/episodes"] == list(range(100, frames + 101, 100))
+
+
+def test_checkpoint_of_a_1600_frame_run_is_small(tmp_path):
+    """The default networks (256 x 256, Adam state, target and averaged copies) and the filled rows only."""
+    run_dir = tmp_path / "run"
+    proc = run_recipe("sac_silp.py", run_dir, "collector.total_frames=1600", "collector.frames_per_batch=400",
+                      "eval.every_frames=100000", "checkpoint.every_iters=100000")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    size = sum(f.stat().st_size for f in (run_dir / "checkpoint").rglob("*") if f.is_file())
+    assert size < 5e6, f"{size / 1e6:.1f} MB"
+    assert len(load_buffer(run_dir / "checkpoint" / "buffers" / "interaction")) == 1600
 
 
 def _actor_tensors(state: dict) -> tuple[torch.Tensor, torch.Tensor]:
