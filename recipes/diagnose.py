@@ -52,6 +52,7 @@ import schema  # noqa: E402
 import utils  # noqa: E402
 
 from torchrl_silp import CollisionHandling, ReachEnv  # noqa: E402
+from torchrl_silp.data import FilledStorageCheckpointer  # noqa: E402
 from torchrl_silp.eval import DEFAULT_TEST_SEED, episode_outcomes, evaluate  # noqa: E402
 from torchrl_silp.models import UR5eReach  # noqa: E402
 
@@ -225,7 +226,7 @@ def main(argv: list[str]) -> None:
             path = ckpt / "buffers" / part
             if not (path / "storage").exists():
                 continue
-            buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity))
+            buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity), checkpointer=FilledStorageCheckpointer())
             buffer.loads(path)
             data = buffer.storage[: len(buffer)]
             r = data["next", "reward"].squeeze(-1)

@@ -403,7 +403,9 @@ def run_sweep(cfg: DictConfig, command: str | None = None) -> list[dict]:
     started_ray = not ray.is_initialized()
     if started_ray:
         if cfg.ray.address is None:
-            ray.init(num_cpus=cfg.ray.num_cpus, num_gpus=cfg.ray.num_gpus, include_dashboard=cfg.ray.include_dashboard)
+            # "local": a Ray of its own even when another one (`ray start`) runs on this machine
+            ray.init(address="local", num_cpus=cfg.ray.num_cpus, num_gpus=cfg.ray.num_gpus,
+                     include_dashboard=cfg.ray.include_dashboard)
         else:
             ray.init(address=cfg.ray.address)
     try:

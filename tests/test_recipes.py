@@ -78,7 +78,7 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
     # training starts once init_random_frames are collected (TorchRL recipes' rule):
     # 3 batches of 100 at 0.25 updates per frame
     assert out["updates"] == 3 * 25
-    assert 0.0 <= out["success_rate"] <= 1.0
+    assert out["success_rate"] * 8 == round(out["success_rate"] * 8)  # a share of the 8 test tasks
     assert (out["demos_stored"] > 0) is demos
     assert out["rollout_time_per_episode_s"] > 0
     for name in ("learning_curve.png", "test_rollouts.png", "history.json"):
@@ -105,8 +105,8 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         assert lines[0].startswith("policy: the averaged actor")
         first = lines[1].split()
         assert first[:2] == ["outcomes:", "success"]
-        # diagnose.py rolls out all 1000 test tasks; the run evaluated 8 of them
-        assert 0.0 <= float(first[2]) <= 1.0
+        # diagnose.py rolls out all 1000 test tasks (the run evaluated 8 of them): a share of 1000
+        assert len(first[2].split(".")[-1]) == 3
         assert "critic on the demos buffer" in diag.stdout and "random policy" in diag.stdout
         # the default tasks all start in the front IK branch
         assert "start in the front branch: 1000 tasks" in diag.stdout

@@ -91,7 +91,7 @@ def _agrees(cell: str, value: float) -> bool:
 
 def test_sweep_report_and_restart(tmp_path, capsys):
     results = tmp_path / "table1"
-    ray.init(num_cpus=2, include_dashboard=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False)
     try:
         outcome = sweep.run_sweep(sweep_config(results))
         out = capsys.readouterr().out
