@@ -1,5 +1,10 @@
 """Time per rollout of a trained policy, one task at a time and batched, against PRM's planning time.
 
+One task at a time runs three ways on the same tasks: through the TorchRL env
+(``evaluate`` with one task), with :class:`~torchrl_silp.SingleTaskRollout` eager,
+and with it compiled (the policy and the model's step as one compiled function);
+the paper's 130 ms per rollout (its Table 1, SAC-SILP+ on its hardware) is printed beside them.
+
 Table 1's "planning time per rollout" of a learned planner is the wall time
 of its batched evaluation (1000 tasks in one batch) divided by the tasks. A
 planner that serves one robot sees one task at a time: this script times
@@ -21,6 +26,7 @@ import os
 import platform
 import statistics
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -29,7 +35,10 @@ from omegaconf import OmegaConf
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 from utils import load_trained_networks, make_env, make_model, make_observation_transform  # noqa: E402
 
+from torchrl_silp import ReachEnv, SingleTaskRollout  # noqa: E402
 from torchrl_silp.eval import DEFAULT_TEST_SEED, evaluate  # noqa: E402
+
+PAPER_MS_PER_ROLLOUT = 130.0  # the paper's Table 1: SAC-SILP+'s planning time per rollout
 
 
 def main(argv=None) -> None:
@@ -64,11 +73,31 @@ def main(argv=None) -> None:
         out = run(1, DEFAULT_TEST_SEED + 1 + i)
         times.append(out["time_per_rollout_s"])
         successes += int(out["success_rate"])
+    tasks = [ReachEnv(model, num_envs=1, seed=DEFAULT_TEST_SEED + 1 + i).reset()[0] for i in range(args.tasks)]
+    fused = {}
+    for compiled in (False, True):
+        rollout = SingleTaskRollout(actor, model, observation_transform=make_observation_transform(cfg, model),
+                                    max_steps=cfg.env.max_steps, compile=compiled)
+        start = time.perf_counter()
+        rollout(tasks[0])  # warm-up (and the compilation)
+        warm_up = time.perf_counter() - start
+        per_task, wins = [], 0
+        for task in tasks:
+            start = time.perf_counter()
+            wins += int(rollout(task)["success"])
+            per_task.append(time.perf_counter() - start)
+        fused[compiled] = (per_task, wins, warm_up)
     batched = run(1000, DEFAULT_TEST_SEED)
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {args.threads}")
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {args.threads}"
+          f"{'' if os.getloadavg()[0] < 0.5 else f' (not alone: load average {os.getloadavg()[0]:.1f})'}")
     print(f"policy of {args.run_dir} ({cfg.env.name})")
-    print(f"  one task at a time ({args.tasks} tasks): median {statistics.median(times) * 1e3:.1f} ms per rollout, "
-          f"max {max(times) * 1e3:.1f} ms, success {successes}/{args.tasks}")
+    print(f"  one task at a time ({args.tasks} tasks), median per rollout:")
+    print(f"    TorchRL env (evaluate, 1 task):    {statistics.median(times) * 1e3:6.1f} ms, success {successes}/{args.tasks}")
+    for compiled, (per_task, wins, warm_up) in fused.items():
+        label = "SingleTaskRollout, compiled:" if compiled else "SingleTaskRollout, eager:"
+        print(f"    {label:<35s}{statistics.median(per_task) * 1e3:6.1f} ms, success {wins}/{args.tasks} "
+              f"(first call {warm_up:.1f} s)")
+    print(f"    the paper (Table 1, SAC-SILP+):     {PAPER_MS_PER_ROLLOUT:6.1f} ms")
     print(f"  batched (1000 tasks, as in Table 1): {batched['time_per_rollout_s'] * 1e3:.3f} ms per rollout, "
           f"success {batched['success_rate']:.3f}")
     if args.budget > 0:

@@ -1,6 +1,7 @@
 """torchrl_silp: SILP+ (self-imitation learning by planning plus) as TorchRL components."""
 
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay
+from torchrl_silp.deploy import SingleTaskRollout
 from torchrl_silp.envs import ReachEnv, UR5eReachEnv, UR5eReachGymEnv  # importing registers the Gymnasium ids
 from torchrl_silp.eval import evaluate
 from torchrl_silp.geometry import CollisionReason, sphere_box_distance
@@ -13,6 +14,7 @@ from torchrl_silp.robot import UR5e
 from torchrl_silp.transforms import CollisionHandling, GoalRelative, PerceptionNoise
 
 __all__ = [
+    "SingleTaskRollout",
     "TaskModel",
     "UR5eReach",
     "PandaReach",

@@ -39,6 +39,9 @@ _CHUNK = 32768
 
 
 def _check_finite(name: str, value: torch.Tensor) -> None:
+    # value checks read the data: inside torch.compile they would break the graph at every call
+    if torch.compiler.is_compiling():
+        return
     if not bool(torch.isfinite(value).all()):
         raise ValueError(f"{name} contains NaN or inf")
 
@@ -46,6 +49,8 @@ def _check_finite(name: str, value: torch.Tensor) -> None:
 def check_boxes(name: str, boxes: torch.Tensor) -> None:
     """Boxes ``(..., 6k)`` ``(xmin, xmax, ymin, ymax, zmin, zmax)``: finite, each min <= max."""
     _check_finite(name, boxes)
+    if torch.compiler.is_compiling():
+        return
     b = boxes.reshape(-1, 3, 2)
     if bool((b[..., 0] > b[..., 1]).any()):
         raise ValueError(f"{name}: a box has min > max (boxes are (xmin, xmax, ymin, ymax, zmin, zmax))")
@@ -261,7 +266,9 @@ class TaskModel(ABC):
 
         Checks ``max(ceil(span / resolution), 1) + 1`` evenly spaced configurations per motion
         (``span`` the largest joint difference of the batch), both ends included, each with
-        :meth:`motion_margin`; the flags are OR-ed over the samples.
+        :meth:`motion_margin`; the flags are OR-ed over the samples. Inside ``torch.compile``
+        ``span`` is the largest action step (``action_scale``), whatever the data: check longer
+        motions eagerly there.
 
         Returns:
             flags ``(..., 1)`` (uint8) and the achieved goal at ``config_to`` ``(..., goal_dim)``.
@@ -269,7 +276,12 @@ class TaskModel(ABC):
         h = self.motion_resolution if resolution is None else float(resolution)
         batch = config_from.shape[:-1]
         delta = config_to - config_from
-        span = float(delta.detach().abs().amax()) if delta.numel() else 0.0
+        if torch.compiler.is_compiling():
+            # the count may not depend on the data inside a compiled graph: that of a full action step
+            scale = self.action_scale
+            span = float(scale) if isinstance(scale, (int, float)) else float(torch.as_tensor(scale).max())
+        else:
+            span = float(delta.detach().abs().amax()) if delta.numel() else 0.0
         n = max(int(math.ceil(span / h - 1e-9)), 1) + 1
         if scene.batch_size != batch:
             scene = scene.expand(*batch)

@@ -342,7 +342,7 @@ class SILPLoss(LossModule):
             s1_demo = td.get("next").select(*model.state_keys)
             s1_pi, r0_pi = model.step(s0, pi)[:2]
             # both branches advance together as one batch of 2N rows
-            state = torch.cat([s1_demo, s1_pi.to(s1_demo.dtype)])
+            state = torch.cat([s1_demo, s1_pi.apply(lambda pi_, demo: pi_.to(demo.dtype), s1_demo)])
             ret = torch.cat([r0_demo, r0_pi.reshape(n).to(r0_demo.dtype)])
             gamma, discount = self.gamma, 1.0
             for _ in range(self.k):  # over the horizon, not the batch
