@@ -13,6 +13,11 @@ its planned demonstrations, then times (median of ``--reps`` calls):
   the fused step in one run;
 * ``update``: forward + backward + every optimiser step + the soft target update.
 
+Each part runs eager and compiled (``torch.compile`` of the part, as the recipe's
+``compile.compile=true`` compiles the update; ``--no-compile`` skips those), and the
+arithmetic floor of the update is printed beside: its matrix products' FLOPs at the rate
+this core reaches on a 256 x 256 x 256 product, measured in the same run.
+
 Run::
 
     python benchmarks/update_step.py                       # SAC-SILP+, the default config
@@ -75,6 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--reps", type=int, default=50)
+    parser.add_argument("--no-compile", dest="compile", action="store_false", help="eager figures only")
     parser.add_argument("overrides", nargs="*", help="hydra overrides of recipes/config/sac_silp.yaml")
     args = parser.parse_args(argv)
     if args.threads:
@@ -103,27 +109,71 @@ def main(argv: list[str] | None = None) -> dict:
             opt.zero_grad(set_to_none=True)
         updater.step()
 
-    figures = {"sample": median_ms(buffers.sample, args.reps)}
+    parts = {"sample": buffers.sample}
     if isinstance(loss, SILPLoss):
-        figures["rl loss"] = median_ms(lambda: loss.rl_loss(batch), args.reps)
-        figures["bc loss"] = median_ms(lambda: loss.bc_loss(batch), args.reps)
-        if cfg.silp.filter == "reward":
-            # the same term through separate transition and outcome calls (FK twice per look-ahead step)
-            fused = loss.model
-            loss.model = _UnfusedModel(fused)
-            try:
-                figures["bc loss, unfused model"] = median_ms(lambda: loss.bc_loss(batch), args.reps)
-            finally:
-                loss.model = fused
+        parts["rl loss"] = lambda: loss.rl_loss(batch)
+        parts["bc loss"] = lambda: loss.bc_loss(batch)
     else:
-        figures["rl loss"] = median_ms(lambda: loss(batch), args.reps)
-    figures["update"] = median_ms(update, args.reps)
+        parts["rl loss"] = lambda: loss(batch)
+    parts["update"] = update
+    figures = {name: {"eager": median_ms(fn, args.reps)} for name, fn in parts.items()}
+    if isinstance(loss, SILPLoss) and cfg.silp.filter == "reward":
+        # the same term through separate transition and outcome calls (FK twice per look-ahead step)
+        fused = loss.model
+        loss.model = _UnfusedModel(fused)
+        try:
+            figures["bc loss, unfused model"] = {"eager": median_ms(lambda: loss.bc_loss(batch), args.reps)}
+        finally:
+            loss.model = fused
+    if args.compile:
+        for name, fn in parts.items():
+            if name != "sample":  # a buffer's sample is not compiled
+                compiled = torch.compile(fn)
+                start = time.perf_counter()
+                compiled()
+                figures[name]["compile_s"] = time.perf_counter() - start
+                figures[name]["compiled"] = median_ms(compiled, args.reps)
+    floor_ms = 1e3 * update_flops(cfg, loss, batch) / gemm_rate()
+    load = os.getloadavg()[0]
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}, "
-          f"{os.cpu_count()} CPUs; {cfg.env.name}, batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, "
-          f"overrides {args.overrides or 'none'}")
-    for name, ms in figures.items():
-        print(f"{name:>22s}: {ms:7.2f} ms")
+          f"{os.cpu_count()} CPUs{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}; {cfg.env.name}, "
+          f"batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, overrides {args.overrides or 'none'}")
+    print(f"{'part':>22s}  {'eager':>9s}  {'compiled':>9s}  (compile)")
+    for name, f in figures.items():
+        compiled = f"{f['compiled']:6.2f} ms" if "compiled" in f else " " * 9
+        took = f"  ({f['compile_s']:.0f} s)" if "compile_s" in f else ""
+        print(f"{name:>22s}  {f['eager']:6.2f} ms  {compiled}{took}")
+    print(f"{'matmul floor of update':>22s}  {floor_ms:6.2f} ms  (its matrix products at this core's 256^3 rate)")
     return figures
+
+
+def gemm_rate() -> float:
+    """FLOP/s of one 256 x 256 x 256 float32 product on this core (median of 200)."""
+    a, b = torch.randn(256, 256), torch.randn(256, 256)
+    return 2 * 256**3 / (median_ms(lambda: a @ b, 200) / 1e3)
+
+
+def update_flops(cfg, loss, batch) -> float:
+    """The FLOPs of the update's matrix products, counted by torch's FLOP counter on one update."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+    from torch.utils.flop_counter import flop_registry
+
+    class Count(TorchDispatchMode):  # torch's FlopCounterMode tracks modules, which TensorDict modules upset
+        total = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            rule = flop_registry.get(func._overloadpacket)
+            if rule is not None:
+                Count.total += rule(*args, **(kwargs or {}), out_val=out)
+            return out
+
+    with Count():
+        out = loss(batch)
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+    for p in loss.parameters():
+        p.grad = None
+    return Count.total
 
 
 if __name__ == "__main__":

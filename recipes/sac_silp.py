@@ -99,16 +99,17 @@ def train(cfg: DictConfig) -> dict:
                                      device=device)
     updates_per_batch = max(1, int(round(cfg.collector.frames_per_batch * cfg.optim.utd_ratio)))
 
-    def update(sample):
+    def gradient_step(sample):
+        for opt in optimizers.values():  # (a first compiled call that fails is redone eagerly from here)
+            opt.zero_grad(set_to_none=True)
         loss_td = loss(sample)
         sum(v for k, v in loss_td.items() if k.startswith("loss_")).backward()
         for opt in optimizers.values():
             opt.step()
-            opt.zero_grad(set_to_none=True)
         updater.step()
-        if averaged is not None:
-            averaged.update_parameters(actor)
         return loss_td.detach()
+
+    gradient_step = utils.compile_update(cfg, gradient_step)
 
     # frames on the bar; the updates and the phase beside it (the ETA is tqdm's smoothed recent rate)
     pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], unit="frame", disable=not cfg.progress)
@@ -140,7 +141,9 @@ def train(cfg: DictConfig) -> dict:
             if counters["frames"] >= cfg.collector.init_random_frames and len(buffers):
                 with timeit("train"):
                     for i in range(updates_per_batch):
-                        losses.append(update(buffers.sample()))
+                        losses.append(gradient_step(buffers.sample()))
+                        if averaged is not None:
+                            averaged.update_parameters(actor)
                         counters["updates"] += 1
                         if i % 20 == 0:
                             show(phase="training")

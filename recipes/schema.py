@@ -100,6 +100,12 @@ class CheckpointConfig:
 
 
 @dataclass
+class CompileConfig:
+    compile: bool = True
+    compile_mode: Optional[str] = None
+
+
+@dataclass
 class LoggerConfig:
     backend: Optional[str] = "csv"
     exp_name: str = "sac_silp"
@@ -126,6 +132,7 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    compile: CompileConfig = field(default_factory=CompileConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
 

@@ -15,6 +15,7 @@ import shutil
 import signal
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -299,6 +300,31 @@ def make_optimizers(cfg, loss) -> dict[str, optim.Optimizer]:
     if cfg.algorithm == "sac":
         opts["alpha"] = optim.Adam([rl.log_alpha], lr=cfg.optim.lr)
     return opts
+
+
+def compile_update(cfg, gradient_step):
+    """``gradient_step`` compiled with ``torch.compile`` when ``cfg.compile.compile`` (TorchRL's SOTA recipes'
+    switch), else itself. A first call whose compilation fails (e.g. no C++ compiler for inductor's
+    CPU code) warns and runs eagerly from then on."""
+    if not cfg.compile.compile:
+        return gradient_step
+    compiled = torch.compile(gradient_step, mode=cfg.compile.compile_mode)
+    chosen = []
+
+    def call(sample):
+        if chosen:
+            return chosen[0](sample)
+        try:
+            out = compiled(sample)
+            chosen.append(compiled)
+        except Exception as err:  # noqa: BLE001 - any compiler failure falls back on the same function
+            warnings.warn(f"compile.compile: torch.compile failed ({type(err).__name__}: {str(err)[:300]}); "
+                          "the update runs eagerly")
+            chosen.append(gradient_step)
+            out = gradient_step(sample)
+        return out
+
+    return call
 
 
 # ------------------------------------------------------------- checkpoints

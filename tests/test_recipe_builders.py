@@ -75,7 +75,8 @@ def test_wrong_types_and_unknown_fields_are_rejected_by_the_schema(override):
     assert override.split("=")[0] in message
 
 
-TINY = ["env.num_envs=4", "collector.frames_per_batch=100", "eval.n_tasks=8", "progress=false", "logger.backend="]
+TINY = ["env.num_envs=4", "collector.frames_per_batch=100", "eval.n_tasks=8", "progress=false", "logger.backend=",
+        "compile.compile=false"]
 
 
 @pytest.mark.parametrize(
@@ -168,3 +169,86 @@ def test_stop_request_catches_sigterm_once_then_restores_the_handler():
             stop.exit("stopping")
         assert err.value.code == 128 + signal.SIGTERM
     assert signal.getsignal(signal.SIGTERM) == before and signal.getsignal(signal.SIGINT) == signal.default_int_handler
+
+
+def _gradient_step_setup(cfg):
+    cpu = torch.device("cpu")
+    model = utils.make_model(cfg, cpu)
+    env = utils.make_env(cfg, model, cpu, seed=0)
+    torch.manual_seed(0)
+    actor, critic = utils.make_actor_critic(cfg, model, env, cpu)
+    loss, updater = utils.make_loss(cfg, actor, critic, model, env)
+    optimizers = utils.make_optimizers(cfg, loss)
+    buffers = utils.make_buffers(cfg, model, cpu)
+    with torch.no_grad():
+        episodes = env.rollout(cfg.env.max_steps, break_when_any_done=False)
+    buffers.extend(episodes)
+    buffers.demo_buffer.extend(episodes)
+
+    def gradient_step(sample):  # the recipe's
+        for opt in optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        out = loss(sample)
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        for opt in optimizers.values():
+            opt.step()
+        updater.step()
+        return out.detach()
+
+    return loss, buffers, gradient_step
+
+
+def test_compiled_gradient_step_equals_the_eager_one(monkeypatch):
+    """Two SAC-SILP+ updates from the same parameters, batch and random stream: compiled = eager."""
+    import torch._inductor.config as inductor_config
+
+    monkeypatch.setattr(inductor_config, "fallback_random", True)  # the eager random stream in compiled code
+    cfg = config(*TINY, "network.hidden_sizes=[32,32]", "optim.batch_size=32", "compile.compile=true")
+    loss, buffers, eager_step = _gradient_step_setup(cfg)
+    start = {k: v.clone() for k, v in loss.state_dict().items()}
+    batches = [buffers.sample() for _ in range(2)]
+    assert batches[0]["is_demo"].any() and not batches[0]["is_demo"].all()
+    rng = torch.get_rng_state()
+    eager = [eager_step(b) for b in batches]
+    after_eager = {k: v.clone() for k, v in loss.state_dict().items()}
+    loss2, _, step2 = _gradient_step_setup(cfg)  # fresh optimisers, as the eager step started with
+    loss2.load_state_dict(start)
+    compiled = utils.compile_update(cfg, step2)
+    torch.set_rng_state(rng)
+    with _no_fallback_warning():
+        outs = [compiled(b) for b in batches]
+    for key, value in after_eager.items():
+        torch.testing.assert_close(loss2.state_dict()[key], value, rtol=1e-4, atol=1e-5, msg=key)
+    for a, b in zip(eager, outs):
+        torch.testing.assert_close(a["loss_bc"], b["loss_bc"], rtol=1e-4, atol=1e-5)
+
+
+def _no_fallback_warning():
+    import warnings
+    from contextlib import contextmanager
+
+    @contextmanager
+    def check():
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield
+        assert not [w for w in caught if "torch.compile failed" in str(w.message)]
+
+    return check()
+
+
+def test_a_failing_compilation_falls_back_on_the_eager_step(monkeypatch):
+    cfg = config(*TINY, "compile.compile=true")
+    calls = []
+
+    def boom(fn, mode=None):
+        def failing(sample):
+            raise RuntimeError("no C++ compiler")
+        return failing
+
+    monkeypatch.setattr(torch, "compile", boom)
+    step = utils.compile_update(cfg, lambda sample: calls.append(sample) or sample)
+    with pytest.warns(UserWarning, match="torch.compile failed .*no C\\+\\+ compiler.*runs eagerly"):
+        assert step(1) == 1
+    assert step(2) == 2 and calls == [1, 2]
+    assert utils.compile_update(config(*TINY, "compile.compile=false"), abs) is abs

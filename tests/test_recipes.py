@@ -35,6 +35,7 @@ TINY = [
     "checkpoint.every_iters=1",
     "progress=false",
     "threads=1",
+    "compile.compile=false",  # one test compiles (test_compiled_update_trains)
 ]
 # the Panda reach task through the same recipe, no code of its own
 PANDA = ["env=panda_reach", "env.num_envs=4"]

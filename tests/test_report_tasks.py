@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
@@ -50,3 +51,23 @@ def test_tasks_block_reports_both_tasks_and_the_acceptance_figures(tmp_path):
     # regenerating replaces the block byte for byte
     report.main(["--block", "tasks", "--results", str(results), "--out", str(md), "--figure", str(png)])
     assert md.read_text() == page
+
+
+def test_speed_block_holds_the_benchmark_outputs_verbatim(tmp_path):
+    import report
+
+    results = tmp_path / "benchmarks"
+    results.mkdir()
+    (results / "rollout_time.txt").write_text("$ python benchmarks/rollout_time.py RUN\n  compiled: 3.1 ms\n")
+    out = tmp_path / "results.md"
+    out.write_text("# page\n\nkept\n")
+    text = report.main(["--block", "speed", "--results", str(results), "--out", str(out)])
+    page = out.read_text()
+    assert page.startswith("# page\n\nkept\n") and text in page
+    assert "```\n$ python benchmarks/rollout_time.py RUN\n  compiled: 3.1 ms\n```" in page
+    assert "No GPU figure yet" in page
+    # regenerated in place, not appended twice
+    report.main(["--block", "speed", "--results", str(results), "--out", str(out)])
+    assert out.read_text().count("<!-- speed:begin -->") == 1
+    with pytest.raises(FileNotFoundError, match="no benchmark output"):
+        report.speed_block(tmp_path / "empty", "cmd")

@@ -33,6 +33,7 @@ TINY = [
     "network.hidden_sizes=[16,16]",
     "threads=1",
     "progress=false",
+    "compile.compile=false",
 ]
 
 
