@@ -342,3 +342,25 @@ def test_sac_silp_learns_to_reach(tmp_path):
     assert out["success_rate"] >= 0.35
     assert out["planning_share"] < 0.10
     assert out["demos_stored"] > 10_000
+
+
+def test_time_to_success_benchmark_stops_on_validation_and_tests_once(tmp_path, capsys):
+    sys.path.insert(0, str(RECIPES.parent / "benchmarks"))
+    import time_to_success
+
+    from torchrl_silp.eval import DEFAULT_VALIDATION_SEED
+
+    tiny = [o for o in TINY if not o.startswith("threads")]
+    out = time_to_success.main(["--bar", "0.0001", "--run-dir", str(tmp_path / "run"), *tiny,
+                                "collector.total_frames=400"])
+    printed = capsys.readouterr().out
+    config = (tmp_path / "run" / "config.yaml").read_text()
+    assert f"seed: {DEFAULT_VALIDATION_SEED}" in config and "stop_at_success: 0.0001" in config
+    # stopped at the first evaluation that reached the bar (every 200 frames), not at the budget
+    history = json.loads((tmp_path / "run" / "history.json").read_text())["history"]
+    hits = [h["frames"] for h in history if h["success_rate"] >= 0.0001]
+    if hits:
+        assert out["summary"]["frames"] == hits[0] and "(reached 0.0001" in printed
+    else:
+        assert out["summary"]["frames"] == 400 and "(not reached 0.0001" in printed
+    assert "test success of that policy (1000 test tasks)" in printed

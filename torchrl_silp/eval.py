@@ -13,9 +13,11 @@ from torchrl_silp.envs.reach import ReachEnv
 from torchrl_silp.models.base import as_model
 from torchrl_silp.transforms import CollisionHandling
 
-__all__ = ["evaluate", "episode_outcomes", "DEFAULT_TEST_SEED"]
+__all__ = ["evaluate", "episode_outcomes", "DEFAULT_TEST_SEED", "DEFAULT_VALIDATION_SEED"]
 
 DEFAULT_TEST_SEED = 20231101  # the 1000 test tasks every recipe and baseline reports on
+# tasks to tune and to stop on (same distribution, other draws): the test tasks are read once, for the figure reported
+DEFAULT_VALIDATION_SEED = 31415926
 
 
 @torch.no_grad()
