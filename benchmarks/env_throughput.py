@@ -25,6 +25,7 @@ kernel fused by ``torch.compile``). Run:
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 
@@ -129,9 +130,14 @@ def main() -> None:
     parser.add_argument("--no-compile", action="store_true", help="skip the compiled variant")
     parser.add_argument("--mujoco-configs", type=int, default=None,
                         help="configurations MuJoCo checks (default 100000, 20000 with --quick)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     min_time = 0.5 if args.quick else 2.0
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
+    load = os.getloadavg()[0]
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}"
+          f"{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}")
 
     n_mujoco = args.mujoco_configs or (20_000 if args.quick else 100_000)
     mj_rate, ngeom = bench_mujoco(n_mujoco)
