@@ -1,10 +1,9 @@
 """Time to success: the main job run until its validation success first reaches a bar, then tested once.
 
 Runs ``recipes/sac_silp.py``'s ``train`` on the given config with
-``stop_at_success`` (default 0.95) and its periodic evaluations on the
-validation tasks (``eval.seed`` = ``DEFAULT_VALIDATION_SEED``: the same task
-distribution as the test tasks, other draws), then evaluates the policy it
-stopped with on the 1000 test tasks once. Prints the frames, gradient updates and
+``stop_at_success`` (default 0.95); its periodic evaluations read the validation
+tasks (``eval.seed``: the same task distribution as the test tasks, other draws)
+and its final one the 1000 test tasks (``eval.test_seed``), once. Prints the frames, gradient updates and
 training wall time to the first evaluation at or above the bar, and the test
 success. Run it alone on the machine; the output says if it was not.
 
@@ -31,9 +30,6 @@ from hydra import compose, initialize_config_dir
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
 import sac_silp  # noqa: E402  (registers the structured schema)
-import utils  # noqa: E402
-
-from torchrl_silp.eval import DEFAULT_TEST_SEED, DEFAULT_VALIDATION_SEED, evaluate  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -51,28 +47,25 @@ def main(argv: list[str] | None = None) -> dict:
         with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
             cfg = compose(config_name="sac_silp", overrides=[
                 *args.overrides, f"seed={args.seed}", f"stop_at_success={args.bar}",
-                f"eval.seed={DEFAULT_VALIDATION_SEED}", f"run_dir={run_dir}", "progress=false",
+                f"run_dir={run_dir}", "progress=false",
             ])
+        if cfg.eval.seed == cfg.eval.test_seed:
+            parser.error("eval.seed (the validation tasks it stops on) must differ from eval.test_seed")
         start = time.perf_counter()
         summary = sac_silp.train(cfg)
         wall = time.perf_counter() - start
-        device = torch.device("cpu")
-        model = utils.make_model(cfg, device)
-        actor, _, _ = utils.load_trained_networks(cfg, model, utils.make_env(cfg, model, device, seed=0),
-                                                  run_dir / "checkpoint", device)
-        test = evaluate(actor, n_tasks=1000, seed=DEFAULT_TEST_SEED, model=model, max_steps=cfg.env.max_steps,
-                        observation_transform=utils.make_observation_transform(cfg, model))
-    reached = summary["success_rate"] >= args.bar  # the final evaluation is the stopping one's policy and tasks
+    # the last validation evaluation is the stopping one's policy and tasks
+    reached = summary["validation_success_rate"] >= args.bar
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
           f"threads {torch.get_num_threads()}, device {cfg.device}"
           f"{'' if load < 0.5 else f' (not alone: load average {load:.1f} at the start)'}")
     print(f"config: recipes/config/sac_silp.yaml, overrides {args.overrides or 'none'}, seed {args.seed}")
-    print(f"validation success {summary['success_rate']:.3f} "
+    print(f"validation success {summary['validation_success_rate']:.3f} "
           f"({'reached' if reached else 'not reached'} {args.bar} within the budget) after "
           f"{summary['frames']:,} frames, {summary['updates']:,} updates, {summary['train_wall_s'] / 60:.1f} min of "
           f"training ({wall / 60:.1f} min wall with the evaluations)")
-    print(f"test success of that policy (1000 test tasks): {test['success_rate']:.3f}")
-    return {"summary": summary, "test_success_rate": test["success_rate"], "wall_s": wall}
+    print(f"test success of that policy ({cfg.eval.n_tasks} test tasks): {summary['success_rate']:.3f}")
+    return {"summary": summary, "wall_s": wall}
 
 
 if __name__ == "__main__":

@@ -291,8 +291,8 @@ def run(cfg: DictConfig) -> dict:
                       "history": list(history), "sampler_rng": sampler.get_state(),
                       "torch_rng": torch.get_rng_state()}, ckpt)
 
-    def record(bc_loss: float | None) -> dict:
-        metrics = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, model=model,
+    def record(bc_loss: float | None, seed: int = cfg.eval.seed) -> dict:
+        metrics = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=seed, model=model,
                            observation_transform=utils.make_observation_transform(cfg, model),
                            max_steps=cfg.env.max_steps, device=device)
         point = {"updates": counters["updates"], "train_wall_s": collection_wall_s + counters["bc_wall_s"],
@@ -328,7 +328,9 @@ def run(cfg: DictConfig) -> dict:
     if not history or history[-1]["updates"] != counters["updates"]:
         record(None)
         save()
-    final = history[-1]
+    validation = history[-1]
+    final = record(validation["bc_loss"], cfg.eval.test_seed)  # the test tasks, read once
+    history.pop()  # the curve is the validation one
 
     summary = {
         "method": cfg.logger.exp_name,
@@ -338,6 +340,9 @@ def run(cfg: DictConfig) -> dict:
         "source_run_dir": str(cfg.source_run_dir) if cfg.source == "policy" else None,
         "prm_budget_s": float(cfg.prm_budget_s) if cfg.source == "prm" else None,
         "success_rate": final["success_rate"],
+        "test_seed": cfg.eval.test_seed,
+        "validation_success_rate": validation["success_rate"],
+        "validation_seed": cfg.eval.seed,
         "test_collision_rate": final["collision_rate"],
         "mean_steps": final["mean_steps"],
         "train_wall_s": collection_wall_s + counters["bc_wall_s"],

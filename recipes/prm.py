@@ -42,7 +42,7 @@ def validate(cfg: DictConfig) -> None:
             continue
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
             raise ValueError(f"{name} must be a positive number, got {value!r}")
-    for name, value, low in (("seed", cfg.seed, 0), ("eval.seed", cfg.eval.seed, 0), ("threads", cfg.threads, 0),
+    for name, value, low in (("seed", cfg.seed, 0), ("eval.test_seed", cfg.eval.test_seed, 0), ("threads", cfg.threads, 0),
                              ("eval.n_tasks", cfg.eval.n_tasks, 1), ("env.max_steps", cfg.env.max_steps, 1)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
@@ -68,7 +68,7 @@ def run(cfg: DictConfig) -> dict:
         model,
         cfg.budget_s,
         n_tasks=cfg.eval.n_tasks,
-        seed=cfg.eval.seed,
+        seed=cfg.eval.test_seed,
         ompl_seed=cfg.seed,
         max_steps=cfg.env.max_steps,
         device=device,

@@ -489,7 +489,7 @@ def tasks_block(runs: dict[str, list[dict]], results: Path, figure: Path | None,
         "`history.json`, `config.yaml` and `sweep.json`). Method names: `*_sac_silp_plus` is the main job's default "
         "config (`recipes/config/sac_silp.yaml`: SILP+ with our additions), `*_sac` plain SAC with random recovery; "
         "the task is the run's `env.name`. Success rate: the 1000 test tasks of the run's task model "
-        "(`eval.seed`), mean (std) over seeds. Swept collisions: collisions of a motion whose reached state is "
+        "(`eval.test_seed`), mean (std) over seeds. Swept collisions: collisions of a motion whose reached state is "
         "free (the motion passes through an obstacle, or within the motion check's margin of one), which the "
         "check of the reached state alone (the env before the redesign) let pass.",
         "",

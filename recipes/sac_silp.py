@@ -79,12 +79,14 @@ def train(cfg: DictConfig) -> dict:
                                                              logger, env), buffers)
         last_saved[0] = time.monotonic()
 
-    def run_evaluation(return_rollout=False):
-        kwargs = dict(n_tasks=cfg.eval.n_tasks, seed=cfg.eval.seed, model=model, max_steps=cfg.env.max_steps,
+    def run_evaluation(seed=cfg.eval.seed, return_rollout=False):
+        kwargs = dict(n_tasks=cfg.eval.n_tasks, seed=seed, model=model, max_steps=cfg.env.max_steps,
                       observation_transform=utils.make_observation_transform(cfg, model), device=device)
         metrics, rollout = evaluate(evaluated, return_rollout=True, **kwargs)
         if averaged is not None:
             metrics["online_success_rate"] = evaluate(actor, **kwargs)["success_rate"]
+        if seed == cfg.eval.test_seed and seed != cfg.eval.seed:  # the reported figure: not a point of the curve
+            return metrics, rollout
         point = {"frames": counters["frames"], "episodes": counters["episodes"],
                  "train_wall_s": counters["train_wall_s"], **metrics}
         if not history or history[-1]["frames"] != counters["frames"]:
@@ -173,9 +175,10 @@ def train(cfg: DictConfig) -> dict:
     if stop.requested:
         stop.exit(f"stopped at {counters['frames']} frames, checkpoint in {ckpt_dir}: continue with resume=true")
 
-    final, rollout = run_evaluation(return_rollout=True)
+    validation = run_evaluation()
+    final, rollout = run_evaluation(cfg.eval.test_seed, return_rollout=True)  # the test tasks, read once
     checkpoint()
-    summary = utils.summarize(cfg, counters, final, len(buffers.demo_buffer))
+    summary = utils.summarize(cfg, counters, final, len(buffers.demo_buffer), validation)
     if summary["warning"]:
         warnings.warn(summary["warning"])
     utils.plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)

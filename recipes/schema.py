@@ -12,6 +12,8 @@ from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
 
+from torchrl_silp.eval import DEFAULT_TEST_SEED, DEFAULT_VALIDATION_SEED
+
 
 @dataclass
 class EnvConfig:
@@ -88,7 +90,8 @@ class OptimConfig:
 @dataclass
 class EvalConfig:
     n_tasks: int = 1000
-    seed: int = 20231101
+    seed: int = DEFAULT_VALIDATION_SEED
+    test_seed: int = DEFAULT_TEST_SEED
     every_frames: int = 8_000
     actor_average_decay: Optional[float] = 0.999
 
@@ -159,7 +162,8 @@ class BCOptimConfig:
 @dataclass
 class BCEvalConfig:
     n_tasks: int = 1000
-    seed: int = 20231101
+    seed: int = DEFAULT_VALIDATION_SEED
+    test_seed: int = DEFAULT_TEST_SEED
     every_updates: int = 2_000
 
 

@@ -546,12 +546,14 @@ def plot_learning_curve(history: list[dict], path: Path, label: str) -> Path:
     return path
 
 
-def summarize(cfg, counters: dict, final: dict, demos_stored: int) -> dict:
-    """The run's ``summary.json``: the method, the final test evaluation and the counters."""
+def summarize(cfg, counters: dict, final: dict, demos_stored: int, validation: dict | None = None) -> dict:
+    """The run's ``summary.json``: the method, the final test evaluation (and the validation one) and the counters."""
     return {
         "method": cfg.logger.exp_name, "env": cfg.env.name, "algorithm": cfg.algorithm, "silp_bc": cfg.silp.bc,
         "silp_demos": cfg.silp.demos, "her": cfg.replay_buffer.her, "exploration": cfg.exploration.mode,
-        "seed": cfg.seed, "success_rate": final["success_rate"],
+        "seed": cfg.seed, "success_rate": final["success_rate"], "test_seed": cfg.eval.test_seed,
+        "validation_success_rate": None if validation is None else validation["success_rate"],
+        "validation_seed": cfg.eval.seed,
         "online_success_rate": final.get("online_success_rate", final["success_rate"]),
         "evaluated_actor": "online" if cfg.eval.actor_average_decay is None
         else f"average (decay {cfg.eval.actor_average_decay})",

@@ -363,4 +363,5 @@ def test_time_to_success_benchmark_stops_on_validation_and_tests_once(tmp_path, 
         assert out["summary"]["frames"] == hits[0] and "(reached 0.0001" in printed
     else:
         assert out["summary"]["frames"] == 400 and "(not reached 0.0001" in printed
-    assert "test success of that policy (1000 test tasks)" in printed
+    assert "test success of that policy (8 test tasks)" in printed
+    assert out["summary"]["test_seed"] != out["summary"]["validation_seed"] == DEFAULT_VALIDATION_SEED
