@@ -48,6 +48,7 @@ class PlannerConfig:
     step_size: Optional[float] = None
     method: str = "exact"
     goal_node: bool = True
+    own_query: bool = True
 
 
 @dataclass

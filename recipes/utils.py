@@ -236,6 +236,7 @@ def make_buffers(cfg, model, device) -> MixedReplay:
         "step_size": cfg.planner.step_size,
         "method": cfg.planner.method,
         "goal_node": cfg.planner.goal_node,
+        "own_query": cfg.planner.own_query,
     }
     keys = observation_keys(cfg)
     demos = DemoReplayBuffer(

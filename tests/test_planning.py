@@ -428,6 +428,17 @@ def test_queries_include_each_episodes_own_start_to_goal(model, envs):
     # seeded: the same draw twice
     again = roadmap.queries(4, torch.Generator().manual_seed(1))
     assert all(torch.equal(x, y) for x, y in zip((ep, s, g), again))
+    # the paper's queries: the same random pairs without the episodes' own
+    ep_p, s_p, g_p = roadmap.queries(4, torch.Generator().manual_seed(1), own_query=False)
+    own = (s == 0) & (g == nearest[ep])
+    for e in range(roadmap.num_episodes):
+        mine, paper = (ep == e), (ep_p == e)
+        # the own query comes first in an episode's group; the random pairs follow in the same order
+        first_random = 1 if bool(own[mine][:1].any()) else 0
+        assert torch.equal(s[mine][first_random:], s_p[paper]) and torch.equal(g[mine][first_random:], g_p[paper])
+    assert int(paper_count := ep_p.numel()) <= 4 * roadmap.num_episodes and paper_count == ep.numel() - int(
+        sum(bool(own[ep == e][:1].any()) for e in range(roadmap.num_episodes)))
+    assert roadmap.queries(0, own_query=False)[0].numel() == 0
 
 
 @settings(max_examples=6, deadline=None, derandomize=True)

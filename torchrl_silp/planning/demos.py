@@ -152,7 +152,7 @@ def paths_to_demonstrations(
     return root
 
 
-PLANNER_OPTIONS = ("d", "n_pairs", "step_size", "method", "generator", "lazy", "goal_node")
+PLANNER_OPTIONS = ("d", "n_pairs", "step_size", "method", "generator", "lazy", "goal_node", "own_query")
 
 
 def check_planner_kwargs(kwargs: dict) -> None:
@@ -177,7 +177,7 @@ def check_planner_kwargs(kwargs: dict) -> None:
         raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
     if kwargs.get("method", "exact") not in SEARCH_METHODS:
         raise ValueError(f"method must be one of {SEARCH_METHODS}, got {kwargs['method']!r}")
-    for name in ("lazy", "goal_node"):
+    for name in ("lazy", "goal_node", "own_query"):
         if not isinstance(kwargs.get(name, False), bool):
             raise TypeError(f"{name} must be a bool, got {kwargs[name]!r}")
 
@@ -193,6 +193,7 @@ def plan_demonstrations(
     generator: torch.Generator | None = None,
     lazy: bool = True,
     goal_node: bool = False,
+    own_query: bool = True,
     observation_transform=None,
 ) -> TensorDict:
     """Demonstrations planned on the experience of a batch of episodes (SILP+).
@@ -219,6 +220,8 @@ def plan_demonstrations(
             :func:`~torchrl_silp.planning.search.roadmap_paths`).
         goal_node: also plan to each episode's real goal configuration (see
             :class:`~torchrl_silp.planning.roadmap.ExperienceRoadmap`).
+        own_query: also plan each episode's own start towards its real goal (ours; the
+            paper plans the ``n_pairs`` random pairs only).
         observation_transform: builds the networks' inputs from a named state (see
             :func:`paths_to_demonstrations`).
 
@@ -247,6 +250,6 @@ def plan_demonstrations(
         raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
     model = as_model(model)
     roadmap = ExperienceRoadmap(model, episodes, d=d, step_size=step_size, lazy=lazy, goal_node=goal_node)
-    episode, start, goal = roadmap.queries(n_pairs, generator)
+    episode, start, goal = roadmap.queries(n_pairs, generator, own_query=own_query)
     paths = roadmap_paths(roadmap, episode, start, goal, method=method)
     return paths_to_demonstrations(model, roadmap, episode, paths, observation_transform)

@@ -316,7 +316,7 @@ class ExperienceRoadmap:
         return dist.masked_fill(~self.mask | self.is_goal_node, math.inf).argmin(-1)
 
     def queries(
-        self, n_pairs: int = 10, generator: torch.Generator | None = None
+        self, n_pairs: int = 10, generator: torch.Generator | None = None, own_query: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Start/goal queries: each episode's own, then ``n_pairs`` random node pairs.
 
@@ -330,6 +330,8 @@ class ExperienceRoadmap:
         Args:
             n_pairs: random pairs per episode (>= 0).
             generator: torch generator of the draw (on any device).
+            own_query: plan the episode's own queries (ours); ``False`` keeps the random
+                pairs only, as the paper does (the same draws).
 
         Returns:
             ``(episode, start, goal)``, each long ``[Q]``, on the roadmap's device,
@@ -355,6 +357,8 @@ class ExperienceRoadmap:
             offset = 1 + (u[1] * (n - 1)).long().clamp(max=(n - 2).clamp(min=0))
             start[:, -n_pairs:] = s
             goal[:, -n_pairs:] = (s + offset) % n.clamp(min=1)
+        if not own_query:
+            start, goal = start[:, start.shape[1] - n_pairs:], goal[:, goal.shape[1] - n_pairs:]
         episode = torch.arange(E, device=device).unsqueeze(-1).expand_as(start)
         ok = start != goal
         return episode[ok], start[ok], goal[ok]
