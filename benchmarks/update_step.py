@@ -42,7 +42,9 @@ from hydra import compose, initialize_config_dir
 RECIPES = Path(__file__).parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
 import schema  # noqa: E402
-from utils import make_actor_critic, make_buffers, make_env, make_loss, make_model, make_optimizers  # noqa: E402
+from utils import (  # noqa: E402
+    make_actor_critic, make_buffers, make_env, make_gradient_step, make_loss, make_model, make_optimizers,
+)
 
 from torchrl_silp.objectives import SILPLoss  # noqa: E402
 
@@ -101,13 +103,10 @@ def main(argv: list[str] | None = None) -> dict:
         buffers.demo_buffer.extend(episodes)
     batch = buffers.sample()
 
+    gradient_step = make_gradient_step(loss, optimizers, updater)  # the recipe's update
+
     def update():
-        out = loss(batch)
-        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-        for opt in optimizers.values():
-            opt.step()
-            opt.zero_grad(set_to_none=True)
-        updater.step()
+        gradient_step(batch)
 
     parts = {"sample": buffers.sample}
     if isinstance(loss, SILPLoss):

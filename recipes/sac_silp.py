@@ -101,17 +101,7 @@ def train(cfg: DictConfig) -> dict:
                                      device=device)
     updates_per_batch = max(1, int(round(cfg.collector.frames_per_batch * cfg.optim.utd_ratio)))
 
-    def gradient_step(sample):
-        for opt in optimizers.values():  # (a first compiled call that fails is redone eagerly from here)
-            opt.zero_grad(set_to_none=True)
-        loss_td = loss(sample)
-        sum(v for k, v in loss_td.items() if k.startswith("loss_")).backward()
-        for opt in optimizers.values():
-            opt.step()
-        updater.step()
-        return loss_td.detach()
-
-    gradient_step = utils.compile_update(cfg, gradient_step)
+    gradient_step = utils.compile_update(cfg, utils.make_gradient_step(loss, optimizers, updater))
 
     # frames on the bar; the updates and the phase beside it (the ETA is tqdm's smoothed recent rate)
     pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], unit="frame", disable=not cfg.progress)

@@ -303,6 +303,23 @@ def make_optimizers(cfg, loss) -> dict[str, optim.Optimizer]:
     return opts
 
 
+def make_gradient_step(loss, optimizers: dict, updater):
+    """One gradient update on a sampled batch: the losses, backward, every optimiser's step, the target
+    update. Returns the detached loss TensorDict."""
+
+    def gradient_step(sample):
+        for opt in optimizers.values():  # (a first compiled call that fails is redone eagerly from here)
+            opt.zero_grad(set_to_none=True)
+        loss_td = loss(sample)
+        sum(v for k, v in loss_td.items() if k.startswith("loss_")).backward()
+        for opt in optimizers.values():
+            opt.step()
+        updater.step()
+        return loss_td.detach()
+
+    return gradient_step
+
+
 def compile_update(cfg, gradient_step):
     """``gradient_step`` compiled with ``torch.compile`` when ``cfg.compile.compile`` (TorchRL's SOTA recipes'
     switch), else itself. A first call whose compilation fails (e.g. no C++ compiler for inductor's

@@ -185,17 +185,7 @@ def _gradient_step_setup(cfg):
     buffers.extend(episodes)
     buffers.demo_buffer.extend(episodes)
 
-    def gradient_step(sample):  # the recipe's
-        for opt in optimizers.values():
-            opt.zero_grad(set_to_none=True)
-        out = loss(sample)
-        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-        for opt in optimizers.values():
-            opt.step()
-        updater.step()
-        return out.detach()
-
-    return loss, buffers, gradient_step
+    return loss, buffers, utils.make_gradient_step(loss, optimizers, updater)
 
 
 def test_compiled_gradient_step_equals_the_eager_one(monkeypatch):
