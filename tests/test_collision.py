@@ -257,3 +257,21 @@ def test_bad_collision_inputs(model):
         model.collides([0.0, 0.0, 0.0], torch.zeros(6, dtype=torch.float64))
     with pytest.raises(ValueError, match="resolution"):
         model.segment_collision_free(torch.zeros(1, 3), torch.ones(1, 3), scene(torch.zeros(6), 1), resolution=0)
+
+
+def test_compiled_kernel_equals_the_eager_one_at_padded_sizes(model):
+    """compile_collision=True: batches padded to a power of two, flags and TCP equal to the eager kernel's."""
+    compiled = UR5eReach(model.robot, compile_collision=True)
+    gen = torch.Generator().manual_seed(3)
+    for n in (5, 70):  # padded to 64 and 128: two compilations
+        tasks = model.sample_tasks(n, generator=gen)
+        anywhere = model.config_low + torch.rand(n, 3, generator=gen) * (model.config_high - model.config_low)
+        q = torch.where(torch.arange(n).unsqueeze(-1) % 2 == 0, tasks["joint_position"], anywhere)  # free and not
+        margin = model.motion_margin()
+        flags, tcp = compiled.collision_flags(q, tasks.select("obstacle"), margin)
+        ref_flags, ref_tcp = model.collision_flags(q, tasks.select("obstacle"), margin)
+        assert flags.shape == (n, 1) and tcp.shape == (n, 3)
+        assert torch.equal(flags, ref_flags) and bool((flags != 0).any()) and bool((flags == 0).any())
+        torch.testing.assert_close(tcp, ref_tcp)
+    empty = compiled.collision_flags(torch.zeros(0, 3), torch.zeros(0, 6))
+    assert empty[0].shape == (0, 1)

