@@ -71,3 +71,21 @@ def test_speed_block_holds_the_benchmark_outputs_verbatim(tmp_path):
     assert out.read_text().count("<!-- speed:begin -->") == 1
     with pytest.raises(FileNotFoundError, match="no benchmark output"):
         report.speed_block(tmp_path / "empty", "cmd")
+
+
+@pytest.mark.parametrize("name", ["table1", "tasks", "speed"])
+def test_the_page_blocks_regenerate_from_the_committed_results(name, tmp_path, monkeypatch):
+    """docs/results.md's generated blocks are what recipes/report.py makes of results/ (byte for byte)."""
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)  # the paths in the blocks are the CLI's, relative to the repository root
+    page = Path("docs/results.md").read_text()
+    command = "python recipes/report.py" + ("" if name == "table1" else f" --block {name}")
+    if name == "speed":
+        text = report.speed_block(Path("results/benchmarks"), command)
+    else:
+        runs = report.load_results(Path(f"results/{name}"))
+        plotted = report.plot_curves(runs, tmp_path / "curves.png")  # the committed picture is left alone
+        make = report.block if name == "table1" else report.tasks_block
+        text = make(runs, Path(f"results/{name}"), Path(f"docs/{name}_curves.png"), Path("docs/results.md"),
+                    command, plotted)
+    assert text in page
