@@ -95,8 +95,8 @@ class UR5eReach(ArmReach):
         self.compile_collision = compile_collision
         self._kernel = self._collision_kernel
         if compile_collision:
-            # static shapes vectorise best (~1.5x a dynamic-shape kernel here): batches are padded to a
-            # power of two, one compilation per size met
+            # inductor vectorises a static-shape kernel better than a dynamic-shape one: batches are
+            # padded to a power of two, one compilation per size met
             self._kernel = torch.compile(self._collision_kernel, dynamic=False)
 
     # ------------------------------------------------------------ kinematics
