@@ -31,10 +31,10 @@ from torchrl_silp.geometry import CollisionReason  # noqa: E402
 from torchrl_silp.models import TaskModel, UR5eReach  # noqa: E402
 
 RECIPES = Path(__file__).parents[1] / "recipes"
-# planning may overrun its budget by at most 20 % plus 0.1 s. The overrun is the one collision check
-# under way (a millisecond or two alone); on a loaded machine scheduling stalls add to it (73 ms seen with
-# two training runs beside the suite on 2 cores), and budgets here are >= 0.3 s
-BUDGET_SLACK, BUDGET_SLACK_S = 1.2, 0.1
+# planning may overrun its budget by at most 20 % plus 0.25 s. The overrun is the collision check under
+# way and OMPL stopping its roadmap thread (a few milliseconds alone); on a loaded machine scheduling stalls
+# add to it (up to 178 ms seen with two training runs beside the suite on 2 cores)
+BUDGET_SLACK, BUDGET_SLACK_S = 1.2, 0.25
 
 
 def within_budget(wall: float, budget_s: float) -> bool:
