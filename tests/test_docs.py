@@ -29,4 +29,11 @@ def test_your_own_task_example_runs_silp_on_a_new_task(capsys):
     keys = model.state_keys
     _, collision, _, _ = model.outcome(demos.select(*keys), demos["next"].select(*keys))
     assert not bool(collision.any())
-    assert "demonstration transitions" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "demonstration transitions" in printed
+    # the single-task rollout runs on the new model too: a path from the task's start, moved by its actions
+    episode = scope["episode"]
+    steps = int(episode["steps"])
+    assert f"one task: {steps} steps" in printed and episode["joint_position"].shape == (steps + 1, 2)
+    moved = episode["joint_position"][1:] - episode["joint_position"][:-1]
+    assert torch.allclose(moved, episode["action"].clamp(-1, 1) * model.action_scale, atol=1e-6)
