@@ -291,10 +291,13 @@ def run(cfg: DictConfig) -> dict:
                       "history": list(history), "sampler_rng": sampler.get_state(),
                       "torch_rng": torch.get_rng_state()}, ckpt)
 
-    def record(bc_loss: float | None, seed: int = cfg.eval.seed) -> dict:
-        metrics = evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=seed, model=model,
-                           observation_transform=utils.make_observation_transform(cfg, model),
-                           max_steps=cfg.env.max_steps, device=device)
+    def tested(seed: int) -> dict:
+        return evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=seed, model=model,
+                        observation_transform=utils.make_observation_transform(cfg, model),
+                        max_steps=cfg.env.max_steps, device=device)
+
+    def record(bc_loss: float | None) -> dict:
+        metrics = tested(cfg.eval.seed)
         point = {"updates": counters["updates"], "train_wall_s": collection_wall_s + counters["bc_wall_s"],
                  "bc_wall_s": counters["bc_wall_s"], "bc_loss": bc_loss, **metrics}
         history.append(point)
@@ -329,8 +332,7 @@ def run(cfg: DictConfig) -> dict:
         record(None)
         save()
     validation = history[-1]
-    final = record(validation["bc_loss"], cfg.eval.test_seed)  # the test tasks, read once
-    history.pop()  # the curve is the validation one
+    final = tested(cfg.eval.test_seed)  # the test tasks, read once; the curve is the validation one
 
     summary = {
         "method": cfg.logger.exp_name,
@@ -353,7 +355,7 @@ def run(cfg: DictConfig) -> dict:
         "n_demos_kept": stats["n_kept"],
         "n_transitions": stats["n_transitions"],
         "updates": counters["updates"],
-        "bc_loss": final["bc_loss"],
+        "bc_loss": validation["bc_loss"],
         "episodes": 0,  # BC never interacts with the training env
         "frames": 0,
     }

@@ -85,7 +85,7 @@ def train(cfg: DictConfig) -> dict:
         metrics, rollout = evaluate(evaluated, return_rollout=True, **kwargs)
         if averaged is not None:
             metrics["online_success_rate"] = evaluate(actor, **kwargs)["success_rate"]
-        if seed == cfg.eval.test_seed and seed != cfg.eval.seed:  # the reported figure: not a point of the curve
+        if seed != cfg.eval.seed:  # the test tasks' figure: not a point of the validation curve
             return metrics, rollout
         point = {"frames": counters["frames"], "episodes": counters["episodes"],
                  "train_wall_s": counters["train_wall_s"], **metrics}
@@ -165,8 +165,12 @@ def train(cfg: DictConfig) -> dict:
     if stop.requested:
         stop.exit(f"stopped at {counters['frames']} frames, checkpoint in {ckpt_dir}: continue with resume=true")
 
-    validation = run_evaluation()
-    final, rollout = run_evaluation(cfg.eval.test_seed, return_rollout=True)  # the test tasks, read once
+    if cfg.eval.test_seed == cfg.eval.seed:  # one set of tasks for the curve and the figure: evaluated once
+        final, rollout = run_evaluation(return_rollout=True)
+        validation = final
+    else:  # the last validation point (evaluated now unless the last batch just did), then the test tasks, once
+        validation = history[-1] if history and history[-1]["frames"] == counters["frames"] else run_evaluation()
+        final, rollout = run_evaluation(cfg.eval.test_seed, return_rollout=True)
     checkpoint()
     summary = utils.summarize(cfg, counters, final, len(buffers.demo_buffer), validation)
     if summary["warning"]:
