@@ -13,8 +13,9 @@ its planned demonstrations, then times (median of ``--reps`` calls):
   the fused step in one run;
 * ``update``: forward + backward + every optimiser step + the soft target update.
 
-Each part runs eager and compiled (``torch.compile`` of the part, as the recipe's
-``compile.compile=true`` compiles the update; ``--no-compile`` skips those), and the
+Each part runs eager and compiled (``torch.compile`` of the loss or its term; the update
+through the recipe's own ``compile_update``, so ``compile.compile_mode`` applies and
+``compile.compile=false`` leaves it eager; ``--no-compile`` skips those), and the
 arithmetic floor of the update is printed beside: its matrix products' FLOPs at the rate
 this core reaches on a 256 x 256 x 256 product, measured in the same run.
 
@@ -43,7 +44,8 @@ RECIPES = Path(__file__).parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
 import schema  # noqa: E402
 from utils import (  # noqa: E402
-    make_actor_critic, make_buffers, make_env, make_gradient_step, make_loss, make_model, make_optimizers,
+    compile_update, make_actor_critic, make_buffers, make_env, make_gradient_step, make_loss, make_model,
+    make_optimizers,
 )
 
 from torchrl_silp.objectives import SILPLoss  # noqa: E402
@@ -66,6 +68,10 @@ class _UnfusedModel:
     def step(self, state, action):
         nxt = self._model.transition(state, action)
         return (nxt, *self._model.outcome(state, nxt))
+
+
+def _bound(fn, batch):
+    return lambda: fn(batch)
 
 
 def median_ms(fn, reps: int) -> float:
@@ -105,17 +111,15 @@ def main(argv: list[str] | None = None) -> dict:
 
     gradient_step = make_gradient_step(loss, optimizers, updater)  # the recipe's update
 
-    def update():
-        gradient_step(batch)
-
-    parts = {"sample": buffers.sample}
+    # name -> (eager call, maker of the compiled call); each compiled the way the recipe compiles it
+    parts = {"sample": (buffers.sample, None)}
     if isinstance(loss, SILPLoss):
-        parts["rl loss"] = lambda: loss.rl_loss(batch)
-        parts["bc loss"] = lambda: loss.bc_loss(batch)
+        parts["rl loss"] = (lambda: loss.rl_loss(batch), lambda: _bound(torch.compile(loss.rl_loss), batch))
+        parts["bc loss"] = (lambda: loss.bc_loss(batch), lambda: _bound(torch.compile(loss.bc_loss), batch))
     else:
-        parts["rl loss"] = lambda: loss(batch)
-    parts["update"] = update
-    figures = {name: {"eager": median_ms(fn, args.reps)} for name, fn in parts.items()}
+        parts["rl loss"] = (lambda: loss(batch), lambda: _bound(torch.compile(loss), batch))
+    parts["update"] = (lambda: gradient_step(batch), lambda: _bound(compile_update(cfg, gradient_step), batch))
+    figures = {name: {"eager": median_ms(eager, args.reps)} for name, (eager, _) in parts.items()}
     if isinstance(loss, SILPLoss) and cfg.silp.filter == "reward":
         # the same term through separate transition and outcome calls (FK twice per look-ahead step)
         fused = loss.model
@@ -125,13 +129,17 @@ def main(argv: list[str] | None = None) -> dict:
         finally:
             loss.model = fused
     if args.compile:
-        for name, fn in parts.items():
-            if name != "sample":  # a buffer's sample is not compiled
-                compiled = torch.compile(fn)
-                start = time.perf_counter()
-                compiled()
-                figures[name]["compile_s"] = time.perf_counter() - start
-                figures[name]["compiled"] = median_ms(compiled, args.reps)
+        for name, (_, make_compiled) in parts.items():
+            if make_compiled is None:  # a buffer's sample is not compiled
+                continue
+            # each part compiled afresh: the frames a part shares with another (the loss's forward)
+            # would otherwise keep both parts' cache entries and check both sets of guards per call
+            torch._dynamo.reset()
+            compiled = make_compiled()
+            start = time.perf_counter()
+            compiled()
+            figures[name]["compile_s"] = time.perf_counter() - start
+            figures[name]["compiled"] = median_ms(compiled, args.reps)
     floor_ms = 1e3 * update_flops(cfg, loss, batch) / gemm_rate()
     load = os.getloadavg()[0]
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}, "

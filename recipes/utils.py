@@ -33,7 +33,7 @@ from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
-from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ
+from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ, ReLU
 
 EXPLORATION_MODES = ("gp", "random", "none")
 
@@ -145,7 +145,7 @@ def make_env(cfg, model, device, seed: int, primers=()) -> TransformedEnv:
 
 # --------------------------------------------------------------------- models
 def _mlp(cfg, out_features: int, device) -> nn.Module:
-    return MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=nn.ReLU, device=device)
+    return MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=ReLU, device=device)
 
 
 def make_actor_critic(cfg, model, env, device):

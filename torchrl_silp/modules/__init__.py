@@ -1,5 +1,7 @@
-"""Policy- and network-side modules: GP-guided exploration, the next-goal Q-network input, actor averaging."""
+"""Policy- and network-side modules: GP-guided exploration, the next-goal Q-network input, actor averaging,
+a ReLU for compiled CPU updates."""
 
+from torchrl_silp.modules.activations import ReLU
 from torchrl_silp.modules.averaging import make_averaged_actor
 from torchrl_silp.modules.gp_exploration import (
     GP_EXPLORATION_MODES,
@@ -18,6 +20,7 @@ __all__ = [
     "GP_EXPLORATION_MODES",
     "GP_STATE_KEYS",
     "NextGoalOffsetQ",
+    "ReLU",
     "make_averaged_actor",
     "matern52_kernel",
     "gp_posterior",
