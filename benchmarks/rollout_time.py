@@ -48,6 +48,7 @@ def main(argv=None) -> None:
     parser.add_argument("--budget", type=float, default=0.1, help="PRM planning budget, s (default 0.1; 0: skip PRM)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = parser.parse_args(argv)
+    load = os.getloadavg()[0]  # before this benchmark's own work counts in it
     if args.tasks < 1:
         parser.error(f"--tasks must be >= 1, got {args.tasks}")
     if args.budget < 0:
@@ -89,7 +90,7 @@ def main(argv=None) -> None:
         fused[compiled] = (per_task, wins, warm_up)
     batched = run(1000, DEFAULT_TEST_SEED)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {args.threads}"
-          f"{'' if os.getloadavg()[0] < 0.5 else f' (not alone: load average {os.getloadavg()[0]:.1f})'}")
+          f"{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}")
     print(f"policy of {args.run_dir} ({cfg.env.name})")
     print(f"  one task at a time ({args.tasks} tasks), median per rollout:")
     print(f"    TorchRL env (evaluate, 1 task):    {statistics.median(times) * 1e3:6.1f} ms, success {successes}/{args.tasks}")

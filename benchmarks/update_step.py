@@ -91,6 +91,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-compile", dest="compile", action="store_false", help="eager figures only")
     parser.add_argument("overrides", nargs="*", help="hydra overrides of recipes/config/sac_silp.yaml")
     args = parser.parse_args(argv)
+    load = os.getloadavg()[0]  # before this benchmark's own work counts in it
     if args.threads:
         torch.set_num_threads(args.threads)
     with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
@@ -141,7 +142,6 @@ def main(argv: list[str] | None = None) -> dict:
             figures[name]["compile_s"] = time.perf_counter() - start
             figures[name]["compiled"] = median_ms(compiled, args.reps)
     floor_ms = 1e3 * update_flops(cfg, loss, batch) / gemm_rate()
-    load = os.getloadavg()[0]
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}, "
           f"{os.cpu_count()} CPUs{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}; {cfg.env.name}, "
           f"batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, overrides {args.overrides or 'none'}")
