@@ -34,13 +34,15 @@ def _setup_context(ctx, inputs, output):
 
 def _backward(ctx, grad):
     (output,) = ctx.saved_tensors
+    # an operator too: written in plain ops, inductor moves the comparison into the
+    # forward and saves its bool result again
     return _relu_backward(grad, output)
 
 
 _relu.register_autograd(_backward, setup_context=_setup_context)
 
 
-def _batched(x: torch.Tensor | None, dim: int | None, size: int) -> torch.Tensor:
+def _batched(x: torch.Tensor, dim: int | None, size: int) -> torch.Tensor:
     if dim is None:
         return x.expand(size, *x.shape)
     return x.movedim(dim, 0)
@@ -62,20 +64,17 @@ def _(info, in_dims, grad, output):
 class ReLU(nn.Module):
     """:class:`torch.nn.ReLU`, computed the same way, that a CPU ``torch.compile`` leaves to ATen's own kernels.
 
-    Traced by ``torch.compile`` on a CPU tensor it is an opaque operator (the
-    ``torchrl_silp::relu`` custom op and its backward, ATen's ``relu`` and
-    ``threshold_backward``) that saves its float output for the backward. With
-    ``nn.ReLU`` inductor fuses the activation into its neighbours and saves a
-    bool mask of the active units instead; its CPU code stores such masks at
-    about 10 ns per element (``x <= 0`` on 131k floats: 1.3 ms compiled, 62 µs
-    eager, torch 2.13, AVX-512), which made the compiled, vmapped Q-ensemble's
-    forward and backward twice as slow as the eager one (a backward written in
-    plain ops does not help: inductor then moves its comparison into the forward
-    and saves the bool result again). Eager code, code traced
-    without gradient (nothing is saved then, and inductor may fuse the activation)
-    and CUDA tensors (whose generated kernels do not have this cost) call ``torch.relu``.
-    Outputs and gradients are those of ``nn.ReLU`` exactly, and the module has
-    no state, so it swaps in for ``nn.ReLU`` in a trained network.
+    Traced by ``torch.compile`` on a CPU tensor with gradient enabled, it is an
+    opaque operator (the ``torchrl_silp::relu`` custom op: ATen's ``relu``, and
+    ``threshold_backward`` for its backward) that saves its float output for the
+    backward. With ``nn.ReLU`` inductor fuses the activation into its neighbours
+    and saves a bool mask of the active units instead, and inductor's CPU code
+    stores bool tensors an order of magnitude slower than ATen does, which made
+    a compiled, vmapped Q-ensemble's forward and backward twice as slow as the
+    eager ones. Eager code, code traced without gradient (nothing is saved
+    then) and CUDA tensors call ``torch.relu``. Outputs and gradients are those
+    of ``nn.ReLU`` exactly, and the module has no state, so it swaps in for
+    ``nn.ReLU`` in a trained network.
 
     Examples:
         >>> from torchrl.modules import MLP
