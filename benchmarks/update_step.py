@@ -35,6 +35,7 @@ import platform
 import statistics
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -68,10 +69,6 @@ class _UnfusedModel:
     def step(self, state, action):
         nxt = self._model.transition(state, action)
         return (nxt, *self._model.outcome(state, nxt))
-
-
-def _bound(fn, batch):
-    return lambda: fn(batch)
 
 
 def median_ms(fn, reps: int) -> float:
@@ -115,11 +112,11 @@ def main(argv: list[str] | None = None) -> dict:
     # name -> (eager call, maker of the compiled call); each compiled the way the recipe compiles it
     parts = {"sample": (buffers.sample, None)}
     if isinstance(loss, SILPLoss):
-        parts["rl loss"] = (lambda: loss.rl_loss(batch), lambda: _bound(torch.compile(loss.rl_loss), batch))
-        parts["bc loss"] = (lambda: loss.bc_loss(batch), lambda: _bound(torch.compile(loss.bc_loss), batch))
+        parts["rl loss"] = (lambda: loss.rl_loss(batch), lambda: partial(torch.compile(loss.rl_loss), batch))
+        parts["bc loss"] = (lambda: loss.bc_loss(batch), lambda: partial(torch.compile(loss.bc_loss), batch))
     else:
-        parts["rl loss"] = (lambda: loss(batch), lambda: _bound(torch.compile(loss), batch))
-    parts["update"] = (lambda: gradient_step(batch), lambda: _bound(compile_update(cfg, gradient_step), batch))
+        parts["rl loss"] = (lambda: loss(batch), lambda: partial(torch.compile(loss), batch))
+    parts["update"] = (lambda: gradient_step(batch), lambda: partial(compile_update(cfg, gradient_step), batch))
     figures = {name: {"eager": median_ms(eager, args.reps)} for name, (eager, _) in parts.items()}
     if isinstance(loss, SILPLoss) and cfg.silp.filter == "reward":
         # the same term through separate transition and outcome calls (FK twice per look-ahead step)
