@@ -265,6 +265,84 @@ def test_insert_nodes_halves_long_edges(model, envs):
     assert (biggest <= 1).all() and (biggest > 0.5 - 1e-6).float().mean() > 0.5
 
 
+def alg2_steps(q_from, q_to, scale):
+    """The paper's Alg. 2 for one edge, literally, on plain floats: the (configuration, action) of each step."""
+
+    def f_a(s, s2):
+        return [(b - a) / c for a, b, c in zip(s, s2, scale)]
+
+    def f_s(s, a):
+        return [x + u * c for x, u, c in zip(s, a, scale)]
+
+    def inside(a):
+        return max(abs(u) for u in a) <= 1.0
+
+    def insert_nodes(s, a):
+        a = [u / 2 for u in a]
+        while not inside(a):
+            a = [u / 2 for u in a]
+        return f_s(s, a), a
+
+    steps, s, a = [], list(q_from), f_a(q_from, q_to)
+    while not inside(a):
+        s2, a2 = insert_nodes(s, a)
+        steps.append((s, a2))
+        s = s2
+        a = f_a(s, q_to)
+    steps.append((s, a))
+    return steps
+
+
+@SETTINGS
+@given(m=st.lists(st.floats(0.0, 12.0), min_size=1, max_size=20))
+def test_halving_pieces_are_the_papers_alg2(m):
+    from torchrl_silp.planning.demos import _edge_pieces
+
+    m = torch.tensor(m, dtype=torch.float64)
+    edge, start, length = _edge_pieces(m, "halving")
+    for e, size in enumerate(m.tolist()):
+        want = alg2_steps([0.0], [size], [1.0])
+        got = edge == e
+        if size == 0:
+            assert int(got.sum()) == 1 and float(length[got]) == 0
+            continue
+        assert int(got.sum()) == len(want)
+        torch.testing.assert_close(start[got] * size, torch.tensor([q[0] for q, _ in want], dtype=m.dtype))
+        torch.testing.assert_close(length[got] * size, torch.tensor([a[0] for _, a in want], dtype=m.dtype))
+
+
+def test_insert_nodes_halving_gives_the_papers_steps(model, envs):
+    # the d = 0.4 scenario above; every demonstration is a prefix of its path's Alg. 2 steps, in order
+    episodes = rollout(envs[(2, 3)], 3, 30, "random")
+    gen = lambda: torch.Generator().manual_seed(0)  # noqa: E731
+    roadmap = ExperienceRoadmap(model, episodes, d=0.4)
+    ep, s, g = roadmap.queries(6, gen(), own_query=True)
+    paths = roadmap_paths(roadmap, ep, s, g)
+    demos = plan_demonstrations(model, episodes, d=0.4, n_pairs=6, generator=gen(), insert_nodes="halving")
+    equal = plan_demonstrations(model, episodes, d=0.4, n_pairs=6, generator=gen())
+    scale = [float(model.action_scale)] * roadmap.config.shape[-1]
+    wanted = []
+    for i in paths.found.nonzero().squeeze(-1).tolist():
+        nodes = paths.nodes[i, : int(paths.length[i])].tolist()
+        cfg = roadmap.config[ep[i]].double().tolist()
+        wanted.append([st for a, b in zip(nodes[:-1], nodes[1:]) for st in alg2_steps(cfg[a], cfg[b], scale)])
+    bounds = demo_bounds(demos)
+    assert bounds and len(bounds) == len(demo_bounds(equal))
+    # the same paths, cut differently
+    assert len(demos) != len(equal) or not torch.allclose(demos["action"], equal["action"])
+    path = 0
+    for first, last in bounds:
+        q, a = demos["joint_position"][first:last + 1].double(), demos["action"][first:last + 1].double()
+        while not torch.allclose(torch.tensor(wanted[path][0][0], dtype=q.dtype), q[0], atol=1e-5):
+            path += 1  # a path whose demonstration was dropped (a colliding step)
+        want = wanted[path][: len(q)]
+        assert len(want) == len(q)
+        torch.testing.assert_close(q, torch.tensor([w[0] for w in want], dtype=q.dtype), atol=1e-5, rtol=0)
+        torch.testing.assert_close(a, torch.tensor([w[1] for w in want], dtype=q.dtype), atol=1e-5, rtol=0)
+        path += 1
+    assert (demos["action"].abs() <= 1).all()
+
+
 def test_a_single_node_gives_no_queries_and_no_demonstrations(model, envs):
     env = envs[(2, 1)]
     env.set_seed(0)

@@ -13,17 +13,63 @@ from torchrl_silp.planning.search import SEARCH_METHODS, Paths, roadmap_paths
 __all__ = ["plan_demonstrations", "paths_to_demonstrations", "demo_start_flags", "check_planner_kwargs"]
 
 
+INSERT_NODES = ("equal", "halving")
+
+
 def _split_counts(m: torch.Tensor) -> torch.Tensor:
-    # InsertNodes: halve the step until every action is within [-1, 1]. A path
-    # edge needing actions of max magnitude m becomes P = 2^k equal steps,
-    # k the fewest halvings with m / 2^k <= 1; dividing by a power of two is
-    # exact in floating point, so the check below is the one the actions meet.
+    # InsertNodes, equal pieces: an edge needing actions of max magnitude m
+    # becomes P = 2^k equal steps, k the fewest halvings with m / 2^k <= 1;
+    # dividing by a power of two is exact in floating point, so the check
+    # below is the one the actions meet.
     P = torch.ones_like(m, dtype=torch.long)
     while True:
         over = m / P > 1.0
         if not bool(over.any()):
             return P
         P = torch.where(over, P * 2, P)
+
+
+def _halving_pieces(m: torch.Tensor) -> torch.Tensor:
+    """The paper's InsertNodes (Alg. 2): the pieces of each edge, as fractions of it.
+
+    While the action ``a`` still needed leaves ``[-1, 1]``, halve it until it fits,
+    take that step, and recompute the action for the rest of the edge; the rest
+    ``<= 1`` is the last step. ``m`` is the edge's largest action magnitude
+    (float ``[E]``); returns float ``[E, K]``, each row's pieces in order, 0 past
+    its last. The loop runs over piece indices (a handful), never over edges.
+    """
+    pieces = []
+    rest = m.clone()
+    while True:
+        over = rest > 1.0
+        if not bool(over.any()):
+            break
+        P = _split_counts(torch.where(over, rest, torch.ones_like(rest)))
+        piece = torch.where(over, rest / P, torch.zeros_like(rest))
+        pieces.append(piece)
+        rest = rest - piece
+    pieces.append(rest)
+    return torch.stack(pieces, -1) / m.clamp(min=torch.finfo(m.dtype).tiny).unsqueeze(-1)
+
+
+def _edge_pieces(m: torch.Tensor, insert_nodes: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(edge, start, length) of every step along the edges: the edge index, and the
+    step's start and length as fractions of its edge, edges in order, steps in order."""
+    if insert_nodes == "equal":
+        P = _split_counts(m)
+        n = int(P.sum())
+        edge = torch.repeat_interleave(torch.arange(P.numel(), device=m.device), P, output_size=n)
+        first = torch.cumsum(P, 0) - P
+        piece = torch.arange(n, device=m.device) - first[edge]
+        Pf = P.to(m.dtype)[edge]
+        return edge, piece.to(m.dtype) / Pf, 1.0 / Pf
+    fractions = _halving_pieces(m)  # [E, K]
+    start = torch.cumsum(fractions, -1) - fractions
+    # a zero-length edge (m == 0) is one step of length 0, as with equal pieces
+    real = fractions > 0
+    real[:, -1] |= ~real.any(-1)
+    edge, k = real.nonzero(as_tuple=True)
+    return edge, start[edge, k], fractions[edge, k]
 
 
 def _default_observation(model, observation_transform):
@@ -41,15 +87,19 @@ def demo_start_flags(n: int, device) -> dict[str, torch.Tensor]:
 
 
 def paths_to_demonstrations(
-    model, roadmap: ExperienceRoadmap, episode: torch.Tensor, paths: Paths, observation_transform=None
+    model, roadmap: ExperienceRoadmap, episode: torch.Tensor, paths: Paths, observation_transform=None,
+    insert_nodes: str = "equal",
 ) -> TensorDict:
     """Flat MDP transitions along found paths, with InsertNodes.
 
     For each found path ``s_0 ... s_n`` each edge ``s_i -> s_{i+1}`` gives the
     action ``a = (q_{i+1} - q_i) / action_scale``; an edge whose action
-    leaves ``[-1, 1]`` is halved (intermediate configurations on the
-    segment, which the roadmap's edge check covered) until every action is
-    within bounds. The demonstrations' desired goal is the achieved goal of
+    leaves ``[-1, 1]`` is cut into steps within bounds at intermediate
+    configurations on the segment, which the roadmap's edge check covered:
+    ``insert_nodes="equal"`` (ours) halves the whole edge until its action
+    fits, giving ``2^k`` equal steps; ``"halving"`` is the paper's Alg. 2:
+    halve the action until it fits, take that step, and recompute the action
+    for the rest of the edge (unequal steps, sometimes more of them). The demonstrations' desired goal is the achieved goal of
     the path's goal node; next states, rewards, collision and success flags
     come from ``model.step`` (the env's own step, swept collision check
     included). A demonstration ends at its first successful step (the env
@@ -68,6 +118,7 @@ def paths_to_demonstrations(
         episode: long ``[Q]`` the episode of each query.
         paths: :class:`~torchrl_silp.planning.search.Paths` ``[Q]``.
         observation_transform: builds the networks' inputs from a named state.
+        insert_nodes: ``"equal"`` or ``"halving"`` (the paper's), see above.
 
     Returns:
         TensorDict ``[N]`` with the keys of an env rollout plus ``"is_demo"``,
@@ -84,6 +135,8 @@ def paths_to_demonstrations(
         >>> bool((demos["action"].abs() <= 1).all())
         True
     """
+    if insert_nodes not in INSERT_NODES:
+        raise ValueError(f"insert_nodes must be one of {INSERT_NODES}, got {insert_nodes!r}")
     model = as_model(model)
     build = _default_observation(model, observation_transform)
     device, dtype = roadmap.device, model.dtype
@@ -99,15 +152,10 @@ def paths_to_demonstrations(
     q_from = q_all[e, nodes[demo, k]]
     delta = q_all[e, nodes[demo, k + 1]] - q_from
     action = delta / scale
-    P = _split_counts(action.abs().amax(-1))
-    # one row per transition: piece i of P along the edge
-    n = int(P.sum())
-    edge = torch.repeat_interleave(torch.arange(P.numel(), device=device), P, output_size=n)
-    first = torch.cumsum(P, 0) - P
-    piece = torch.arange(n, device=device) - first[edge]
-    Pf = P.to(dtype)[edge].unsqueeze(-1)
-    q = q_from[edge] + (piece.to(dtype).unsqueeze(-1) / Pf) * delta[edge]
-    act = action[edge] / Pf
+    # one row per transition: a piece of its edge
+    edge, start, length = _edge_pieces(action.abs().amax(-1), insert_nodes)
+    q = q_from[edge] + start.unsqueeze(-1) * delta[edge]
+    act = action[edge] * length.unsqueeze(-1)
     e_t, demo_t = e[edge], demo[edge]
     goal_node = nodes[:, -1]
     goal = roadmap.achieved_goal.to(dtype)[episode, goal_node][demo_t]
@@ -152,7 +200,8 @@ def paths_to_demonstrations(
     return root
 
 
-PLANNER_OPTIONS = ("d", "n_pairs", "step_size", "method", "generator", "lazy", "goal_node", "own_query")
+PLANNER_OPTIONS = ("d", "n_pairs", "step_size", "method", "generator", "lazy", "goal_node", "own_query",
+                   "insert_nodes")
 
 
 def check_planner_kwargs(kwargs: dict) -> None:
@@ -177,6 +226,8 @@ def check_planner_kwargs(kwargs: dict) -> None:
         raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
     if kwargs.get("method", "exact") not in SEARCH_METHODS:
         raise ValueError(f"method must be one of {SEARCH_METHODS}, got {kwargs['method']!r}")
+    if kwargs.get("insert_nodes", "equal") not in INSERT_NODES:
+        raise ValueError(f"insert_nodes must be one of {INSERT_NODES}, got {kwargs['insert_nodes']!r}")
     for name in ("lazy", "goal_node", "own_query"):
         if not isinstance(kwargs.get(name, False), bool):
             raise TypeError(f"{name} must be a bool, got {kwargs[name]!r}")
@@ -194,6 +245,7 @@ def plan_demonstrations(
     lazy: bool = True,
     goal_node: bool = False,
     own_query: bool = True,
+    insert_nodes: str = "equal",
     observation_transform=None,
 ) -> TensorDict:
     """Demonstrations planned on the experience of a batch of episodes (SILP+).
@@ -222,6 +274,8 @@ def plan_demonstrations(
             :class:`~torchrl_silp.planning.roadmap.ExperienceRoadmap`).
         own_query: also plan each episode's own start towards its real goal (ours; the
             paper plans the ``n_pairs`` random pairs only).
+        insert_nodes: how an edge too long for one action is cut: ``"equal"`` (ours, 2^k
+            equal steps) or ``"halving"`` (the paper's Alg. 2); see :func:`paths_to_demonstrations`.
         observation_transform: builds the networks' inputs from a named state (see
             :func:`paths_to_demonstrations`).
 
@@ -248,8 +302,10 @@ def plan_demonstrations(
         raise ValueError(f"method must be one of {SEARCH_METHODS}, got {method!r}")
     if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
         raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
+    if insert_nodes not in INSERT_NODES:
+        raise ValueError(f"insert_nodes must be one of {INSERT_NODES}, got {insert_nodes!r}")
     model = as_model(model)
     roadmap = ExperienceRoadmap(model, episodes, d=d, step_size=step_size, lazy=lazy, goal_node=goal_node)
     episode, start, goal = roadmap.queries(n_pairs, generator, own_query=own_query)
     paths = roadmap_paths(roadmap, episode, start, goal, method=method)
-    return paths_to_demonstrations(model, roadmap, episode, paths, observation_transform)
+    return paths_to_demonstrations(model, roadmap, episode, paths, observation_transform, insert_nodes)
