@@ -37,6 +37,9 @@ schema.register()
 
 def train(cfg: DictConfig) -> dict:
     """Train, evaluate on the fixed test tasks, checkpoint, report. Returns the summary dict."""
+    total_episodes = cfg.collector.total_episodes
+    if total_episodes is not None and (isinstance(total_episodes, bool) or total_episodes < 1):
+        raise ValueError(f"collector.total_episodes must be a positive number of episodes or null, got {total_episodes!r}")
     device, run_dir = utils.start_run(cfg)
     ckpt_dir = run_dir / "checkpoint"
     model = utils.make_model(cfg, device)
@@ -96,6 +99,8 @@ def train(cfg: DictConfig) -> dict:
         return (metrics, rollout) if return_rollout else metrics
 
     remaining = cfg.collector.total_frames - counters["frames"]
+    if total_episodes is not None and counters["episodes"] >= total_episodes:
+        remaining = 0
     collector = utils.make_collector(cfg, env, policy, total_frames=max(remaining, cfg.collector.frames_per_batch),
                                      init_random_frames=max(0, cfg.collector.init_random_frames - counters["frames"]),
                                      device=device)
@@ -103,8 +108,14 @@ def train(cfg: DictConfig) -> dict:
 
     gradient_step = utils.compile_update(cfg, utils.make_gradient_step(loss, optimizers, updater))
 
-    # frames on the bar; the updates and the phase beside it (the ETA is tqdm's smoothed recent rate)
-    pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], unit="frame", disable=not cfg.progress)
+    # frames (episodes, with an episode budget) on the bar; the updates and the phase beside it (the ETA is
+    # tqdm's smoothed recent rate)
+    if total_episodes is None:
+        pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], unit="frame",
+                         disable=not cfg.progress)
+    else:
+        pbar = tqdm.tqdm(total=total_episodes, initial=min(counters["episodes"], total_episodes), unit="episode",
+                         disable=not cfg.progress)
     status = {"phase": "random actions" if counters["frames"] < cfg.collector.init_random_frames else "training"}
 
     def show(**fields):
@@ -117,7 +128,8 @@ def train(cfg: DictConfig) -> dict:
         for batch in (collector if remaining > 0 else []):
             counters["iterations"] += 1
             counters["frames"] += batch.numel()
-            counters["episodes"] += int(batch["next", "done"].sum())
+            episodes_done = int(batch["next", "done"].sum())
+            counters["episodes"] += episodes_done
             counters["collisions"] += int(batch["next", "collision"].sum())
             counters["swept_collisions"] += int(batch["next", "swept_collision"].sum())
             finished = assembler.push(batch) if cfg.silp.demos or her else None
@@ -149,7 +161,7 @@ def train(cfg: DictConfig) -> dict:
                 show(success=f"{metrics['eval/success_rate']:.3f}", demos=len(buffers.demo_buffer))
             metrics.update({f"time/{k}": v for k, v in timeit.todict(percall=False).items()})
             utils.log_metrics(logger, metrics, counters["frames"])
-            pbar.update(batch.numel())
+            pbar.update(batch.numel() if total_episodes is None else episodes_done)
             if (stop.requested or counters["iterations"] % cfg.checkpoint.every_iters == 0
                     or time.monotonic() - last_saved[0] >= cfg.checkpoint.every_s):
                 checkpoint()
@@ -158,6 +170,8 @@ def train(cfg: DictConfig) -> dict:
             if cfg.stop_at_success is not None and history and history[-1]["success_rate"] >= cfg.stop_at_success:
                 break
             if cfg.max_train_wall_s and counters["train_wall_s"] >= cfg.max_train_wall_s:
+                break
+            if total_episodes is not None and counters["episodes"] >= total_episodes:
                 break
             tick = time.perf_counter()
     collector.shutdown()

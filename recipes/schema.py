@@ -28,6 +28,7 @@ class EnvConfig:
 class CollectorConfig:
     frames_per_batch: int = 800
     total_frames: int = 160_000
+    total_episodes: Optional[int] = None
     init_random_frames: int = 8_000
 
 
@@ -49,6 +50,7 @@ class PlannerConfig:
     method: str = "exact"
     goal_node: bool = True
     own_query: bool = True
+    insert_nodes: str = "equal"
 
 
 @dataclass
@@ -112,7 +114,7 @@ class CompileConfig:
 @dataclass
 class LoggerConfig:
     backend: Optional[str] = "csv"
-    exp_name: str = "sac_silp"
+    exp_name: str = "sac_silp_plus_ext"
 
 
 @dataclass

@@ -237,6 +237,7 @@ def make_buffers(cfg, model, device) -> MixedReplay:
         "method": cfg.planner.method,
         "goal_node": cfg.planner.goal_node,
         "own_query": cfg.planner.own_query,
+        "insert_nodes": cfg.planner.insert_nodes,
     }
     keys = observation_keys(cfg)
     demos = DemoReplayBuffer(

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
@@ -53,6 +54,7 @@ def test_every_table1_learning_method_is_a_config():
         "sac_demon": ("sac", True, False, "reward", "random", False, "proportional"),
         "sac_silp": ("sac", True, True, "q", "random", False, 0.25),
         "sac_silp_plus": ("sac", True, True, "reward", "gp", False, 0.25),
+        "sac_silp_plus_ext": ("sac", True, True, "reward", "gp", False, 0.25),
     }
     expected.update({"ddpg" + name[3:]: ("ddpg",) + flags[1:] for name, flags in expected.items() if name != "sac_silp"})
     assert sorted(expected) == METHODS
@@ -62,6 +64,35 @@ def test_every_table1_learning_method_is_a_config():
                cfg.replay_buffer.her, cfg.replay_buffer.demo_fraction)
         assert got == flags, method
         assert cfg.logger.exp_name == method
+
+
+# the settings where our SILP+ departs from the paper's, with the paper's value and ours (docs/paper_vs_ours.md)
+PAPER_VS_OURS = {
+    "planner.goal_node": (False, True),
+    "planner.own_query": (False, True),
+    "planner.method": ("greedy", "exact"),
+    "planner.insert_nodes": ("halving", "equal"),
+    "network.goal_relative": (False, True),
+    "network.next_tcp_feature": (False, True),
+    "eval.actor_average_decay": (None, 0.999),
+    "optim.target_entropy": ("auto", -6),
+    "exploration.mask_colliding_candidates": (False, True),
+}
+
+
+def test_the_papers_methods_have_its_settings_and_the_extended_ones_ours():
+    default = config()
+    assert default.logger.exp_name == "sac_silp_plus_ext"  # the main job is the extended method
+    for method in METHODS:
+        cfg = config(f"method={method}")
+        which = 1 if method.endswith("_ext") else 0
+        for key, values in PAPER_VS_OURS.items():
+            assert OmegaConf.select(cfg, key) == values[which], (method, key)
+        # where the paper is silent, both keep the base config's values
+        for key in ("silp.lambda2", "replay_buffer.demo_fraction", "planner.n_pairs", "planner.d", "optim.lr",
+                    "env.max_steps"):
+            if method not in ("sac_demon", "ddpg_demon") or key != "replay_buffer.demo_fraction":
+                assert OmegaConf.select(cfg, key) == OmegaConf.select(default, key), (method, key)
 
 
 @pytest.mark.parametrize(

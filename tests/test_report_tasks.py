@@ -32,18 +32,18 @@ def test_tasks_block_reports_both_tasks_and_the_acceptance_figures(tmp_path):
     panda = [0.93, 0.91, 0.95]
     ur5e = [0.965, 0.975]
     for seed, s in enumerate(panda):
-        _run(results, "panda_sac_silp_plus", seed, "panda_reach", s, 300_000, 1000, 100 + seed)
+        _run(results, "panda_sac_silp_plus_ext", seed, "panda_reach", s, 300_000, 1000, 100 + seed)
     for seed, s in enumerate(ur5e):
-        _run(results, "ur5e_sac_silp_plus", seed, "ur5e_reach", s, 160_000, 500, 20)
+        _run(results, "ur5e_sac_silp_plus_ext", seed, "ur5e_reach", s, 160_000, 500, 20)
     md, png = tmp_path / "results.md", tmp_path / "curves.png"
     md.write_text("# results\n\nkept\n")
     text = report.main(["--block", "tasks", "--results", str(results), "--out", str(md), "--figure", str(png)])
     rows = {line.split("|")[2].strip(): line for line in text.splitlines() if line.startswith("| panda") or line.startswith("| ur5e")}
-    assert f"{np.mean(panda):.3f} ({np.std(panda):.3f})" in rows["panda_sac_silp_plus"]
-    assert f"{np.mean([101, 102, 100]):.0f} ({np.mean([100, 101, 102]) / 1000:.1%})" in rows["panda_sac_silp_plus"]
-    assert "| ur5e_reach | ur5e_sac_silp_plus |" in rows["ur5e_sac_silp_plus"]
+    assert f"{np.mean(panda):.3f} ({np.std(panda):.3f})" in rows["panda_sac_silp_plus_ext"]
+    assert f"{np.mean([101, 102, 100]):.0f} ({np.mean([100, 101, 102]) / 1000:.1%})" in rows["panda_sac_silp_plus_ext"]
+    assert "| ur5e_reach | ur5e_sac_silp_plus_ext |" in rows["ur5e_sac_silp_plus_ext"]
     # three Panda seeds all >= 0.90 within 300k frames: holds; two UR5e seeds: not yet
-    assert "- holds: Panda SAC-SILP+" in text
+    assert "- holds: Panda SAC-SILP+ extended" in text
     assert "- does not hold (yet): no regression of the UR5e default config" in text
     assert f"{np.mean(ur5e):.3f} over 2 seed(s)" in text
     page = md.read_text()
