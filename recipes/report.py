@@ -2,26 +2,28 @@
 
     python recipes/report.py                     # --results results/table1 --out docs/results.md
                                                  # --figure docs/table1_curves.png
+    python recipes/report.py --block table1_40k  # the earlier 40k-frame runs (results/table1_40k)
     python recipes/report.py --block tasks       # SILP+ on both task models (results/tasks)
     python recipes/report.py --block speed       # the benchmarks' outputs (results/benchmarks)
 
 Reads every ``<results>/<method>/seed*/summary.json`` (and ``history.json``,
 ``config.yaml``, ``sweep.json`` beside it: what ``recipes/sweep.py`` and the
-recipes write) and writes, between the markers ``<!-- table1:begin -->`` and
-``<!-- table1:end -->`` of ``--out`` (appended at its end when they are
+recipes write) and writes, between the markers ``<!-- <block>:begin -->`` and
+``<!-- <block>:end -->`` of ``--out`` (appended at its end when they are
 missing; the rest of the file is left as it is):
 
 * Table 1 in the paper's columns: success rate, training time (h:mm:ss) and
   planning time per rollout (s), each as mean (std) over the seeds, the
   paper's figures beside ours, the number of seeds, and a line for every row
-  with fewer than 3 seeds;
-* the learning curves (``--figure``): test success rate against training
-  episodes, mean ± std over the seeds, for every method with a history (the
+  with fewer than 3 seeds; each row's settings, read from its runs' configs:
+  the paper's, or which of our additions were on;
+* the learning curves (``--figure``): the periodic evaluations' success rate
+  against training episodes, mean ± std over the seeds, for every method with a history (the
   paper's "Success rates during training");
 * the orderings the paper reports, each evaluated on our means as holds /
   does not hold / not run;
 * the command, the results directory, the training budget
-  (``collector.total_frames`` of the runs' ``config.yaml``) and the machine
+  (``collector.total_episodes`` / ``total_frames`` of the runs' ``config.yaml``) and the machine
   (from the runs' ``sweep.json``).
 
 Std is over the seeds with ddof=0 (as ``compare_runs.py``).
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -44,7 +47,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from compare_runs import mean_std  # noqa: E402
 
-BEGIN, END = "<!-- table1:begin -->", "<!-- table1:end -->"
+BEGIN, END = "<!-- table1:begin -->", "<!-- table1:end -->"  # the default block's markers (see markers())
 TASKS_BEGIN, TASKS_END = "<!-- tasks:begin -->", "<!-- tasks:end -->"
 SPEED_BEGIN, SPEED_END = "<!-- speed:begin -->", "<!-- speed:end -->"
 # the acceptance figures of the task-model redesign: the Panda's bar and the UR5e default before it
@@ -67,17 +70,92 @@ PAPER_TABLE1 = {
     "ddpg": {"label": "DDPG", "success": (0.763, 0.046), "train_s": (_hms("08:17:53"), _hms("00:23:26")), "plan_s": (0.110, 0.017)},
     "ddpg_her": {"label": "DDPG-HER", "success": (0.532, 0.257), "train_s": (_hms("11:15:01"), _hms("03:18:38")), "plan_s": (0.126, 0.024)},
     "ddpg_demon": {"label": "DDPG-Demon", "success": (0.707, 0.039), "train_s": (_hms("08:07:51"), _hms("00:13:21")), "plan_s": (0.107, 0.007)},
-    "ddpg_silp_plus": {"label": "DDPG-SILP+", "success": (0.954, 0.021), "train_s": (_hms("07:35:11"), _hms("00:13:50")), "plan_s": (0.114, 0.009)},
+    "ddpg_silp_plus": {"label": "DDPG-SILP+ (paper's)", "success": (0.954, 0.021), "train_s": (_hms("07:35:11"), _hms("00:13:50")), "plan_s": (0.114, 0.009)},
     "sac": {"label": "SAC", "success": (0.864, 0.066), "train_s": (_hms("07:15:24"), _hms("00:48:00")), "plan_s": (0.116, 0.010)},
     "sac_her": {"label": "SAC-HER", "success": (0.902, 0.008), "train_s": (_hms("07:25:42"), _hms("01:04:36")), "plan_s": (0.113, 0.012)},
     "sac_demon": {"label": "SAC-Demon", "success": (0.925, 0.021), "train_s": (_hms("05:19:24"), _hms("00:06:45")), "plan_s": (0.121, 0.008)},
     "sac_silp": {"label": "SAC-SILP", "success": (0.944, 0.004), "train_s": (_hms("06:35:07"), _hms("00:09:25")), "plan_s": (0.118, 0.003)},
-    "sac_silp_plus": {"label": "SAC-SILP+", "success": (0.973, 0.002), "train_s": (_hms("05:22:58"), _hms("00:04:26")), "plan_s": (0.130, 0.008)},
+    "sac_silp_plus": {"label": "SAC-SILP+ (paper's)", "success": (0.973, 0.002), "train_s": (_hms("05:22:58"), _hms("00:04:26")), "plan_s": (0.130, 0.008)},
     "prm_0.1": {"label": "PRM-0.1", "success": (0.749, 0.038), "train_s": None, "plan_s": (0.134, 0.004)},
     "prm_1": {"label": "PRM-1", "success": (0.772, 0.067), "train_s": None, "plan_s": (1.028, 0.005)},
-    "bc_sac_silp_plus": {"label": "BC-SAC-SILP+", "success": (0.967, 0.003), "train_s": (_hms("00:38:03"), _hms("00:02:25")), "plan_s": (0.137, 0.008)},
+    "bc_sac_silp_plus": {"label": "BC-SAC-SILP+ (paper's)", "success": (0.967, 0.003), "train_s": (_hms("00:38:03"), _hms("00:02:25")), "plan_s": (0.137, 0.008)},
     "bc_prm": {"label": "BC-PRM", "success": (0.464, 0.015), "train_s": (_hms("01:32:56"), _hms("00:01:59")), "plan_s": (0.144, 0.010)},
 }
+# the extended rows (ours): the paper's figures beside them are those of its own method's row
+for _name in ("ddpg_silp_plus", "sac_silp_plus", "bc_sac_silp_plus"):
+    PAPER_TABLE1[_name + "_ext"] = {**PAPER_TABLE1[_name],
+                                    "label": PAPER_TABLE1[_name]["label"].replace("(paper's)", "extended (ours)")}
+ROW_ORDER = ["ddpg", "ddpg_her", "ddpg_demon", "ddpg_silp_plus", "ddpg_silp_plus_ext", "sac", "sac_her", "sac_demon",
+             "sac_silp", "sac_silp_plus", "sac_silp_plus_ext", "prm_0.1", "prm_1", "bc_sac_silp_plus",
+             "bc_sac_silp_plus_ext", "bc_prm"]
+# a row run with the other variant's name cannot hide: the Settings column reads each run's config.yaml
+PAPER_SETTINGS = Path(__file__).resolve().parent / "config" / "paper_settings.yaml"
+SETTING_NAMES = {  # how the Settings column names each of our additions
+    "planner.goal_node": "goal node", "planner.own_query": "own query", "planner.method": "exact search",
+    "planner.insert_nodes": "equal InsertNodes", "network.goal_relative": "goal-relative input",
+    "network.next_tcp_feature": "next-TCP critic input", "eval.actor_average_decay": "averaged actor",
+    "optim.target_entropy": "entropy target", "exploration.mask_colliding_candidates": "masked GP candidates",
+}
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _paper_settings() -> dict:
+    from omegaconf import OmegaConf
+
+    return _flatten(OmegaConf.to_container(OmegaConf.load(PAPER_SETTINGS)))
+
+
+def _relevant(config: dict, key: str) -> bool:
+    """Whether a setting acts in a run of this config (the planner's without demonstrations does not, ...)."""
+    if key.startswith("planner."):
+        return bool(_get(config, "silp.demos"))
+    if key == "exploration.mask_colliding_candidates":
+        return _get(config, "exploration.mode") == "gp"
+    if key == "optim.target_entropy":
+        return _get(config, "algorithm") == "sac"
+    return True
+
+
+def additions(config: dict | None) -> list[str] | None:
+    """Our additions a training run's config turns on, named as in ``SETTING_NAMES``: ``[]`` is the paper's
+    SILP+ as written; ``None``: not a training run (BC, PRM) or no config.
+
+    A key missing from an older run's config takes the schema's default: the keys added since
+    (``planner.own_query``, ``planner.insert_nodes``, ``exploration.mask_colliding_candidates``) were
+    introduced as switches with the behaviour before them as default.
+    """
+    if config is None or _get(config, "algorithm") is None:
+        return None
+    import schema
+
+    defaults = _flatten(dataclasses.asdict(schema.TrainConfig()))
+    out = []
+    for key, paper in _paper_settings().items():
+        value = _get(config, key)
+        value = defaults.get(key) if value is None and key not in _flatten(config) else value
+        if _relevant(config, key) and value != paper:
+            out.append(SETTING_NAMES.get(key, key))
+    return out
+
+
+def settings_text(runs: list[dict]) -> str:
+    """The Settings cell of a row: ``paper's``, or ``ours: +a, +b`` (each of its runs' configs, joined)."""
+    texts = []
+    for r in runs:
+        added = additions(r["config"])
+        text = "—" if added is None else "paper's" if not added else "ours: " + ", ".join(f"+{a}" for a in added)
+        if text not in texts:
+            texts.append(text)
+    return "; ".join(texts) or "—"
 
 
 def label(method: str) -> str:
@@ -111,7 +189,7 @@ def load_results(results: Path) -> dict[str, list[dict]]:
     if not runs:
         raise FileNotFoundError(f"no <method>/seed*/summary.json under {results}: run recipes/sweep.py "
                                 f"with results_dir={results} first")
-    order = [m for m in PAPER_TABLE1 if m in runs] + sorted(m for m in runs if m not in PAPER_TABLE1)
+    order = [m for m in ROW_ORDER if m in runs] + sorted(m for m in runs if m not in ROW_ORDER)
     return {m: runs[m] for m in order}
 
 
@@ -163,14 +241,18 @@ def _paper(method: str, key: str, fmt) -> str:
     return f"{fmt(mean)} ({fmt(std)})"
 
 
-def table(runs: dict[str, list[dict]]) -> str:
+def _rows(runs: dict[str, list[dict]], every_row: bool) -> list[str]:
+    """The rows of a table: every method of the paper's table (``every_row``: those not run say so) or those run."""
+    return [m for m in ROW_ORDER if every_row or m in runs] + [m for m in runs if m not in ROW_ORDER]
+
+
+def table(runs: dict[str, list[dict]], every_row: bool = True) -> str:
     rows = [
-        "| Method | Success rate | paper | Training time (h:mm:ss) | paper | Planning time per rollout (s) | paper "
-        "| Seeds | Test collision rate | Training episodes (frames) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| Method | Settings | Success rate | paper | Training time (h:mm:ss) | paper | Planning time per rollout (s) "
+        "| paper | Seeds | Test collision rate | Training episodes (frames) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    methods = list(PAPER_TABLE1) + [m for m in runs if m not in PAPER_TABLE1]
-    for method in methods:
+    for method in _rows(runs, every_row):
         ours = runs.get(method, [])
         success = mean_std(_values(ours, "success_rate")) if ours else "not run"
         train = _values(ours, "train_wall_s")
@@ -180,7 +262,7 @@ def table(runs: dict[str, list[dict]]) -> str:
         episodes, frames = _mean(ours, "episodes"), _mean(ours, "frames")
         budget = "—" if episodes is None else f"{episodes:,.0f}" + ("" if frames is None else f" ({frames:,.0f})")
         rows.append(
-            f"| {label(method)} | {success} | {_paper(method, 'success', lambda x: f'{x:.3f}')} "
+            f"| {label(method)} | {settings_text(ours)} | {success} | {_paper(method, 'success', lambda x: f'{x:.3f}')} "
             f"| {train} | {_paper(method, 'train_s', hms)} "
             f"| {plan} | {_paper(method, 'plan_s', lambda x: f'{x:.3f}')} "
             f"| {len(ours)} | {mean_std(_values(ours, 'test_collision_rate')) if ours else '—'} | {budget} |"
@@ -188,9 +270,9 @@ def table(runs: dict[str, list[dict]]) -> str:
     return "\n".join(rows)
 
 
-def seed_notes(runs: dict[str, list[dict]]) -> list[str]:
+def seed_notes(runs: dict[str, list[dict]], every_row: bool = True) -> list[str]:
     notes = []
-    for method in list(PAPER_TABLE1) + [m for m in runs if m not in PAPER_TABLE1]:
+    for method in _rows(runs, every_row):
         ours = runs.get(method, [])
         if not ours:
             notes.append(f"- {label(method)}: not run")
@@ -218,10 +300,10 @@ def _chain(runs, methods, strict: bool):
     return holds, sign.join(f"{label(m)} {v:.3f}" for m, v in zip(methods, values))
 
 
-def _beats_prm(runs):
+def _beats_prm(runs, silp_rows):
     prm_success, prm_time = _success(runs, "prm_0.1"), _rollout(runs, "prm_0.1")
     holds, parts = True, []
-    for method in ("sac_silp_plus", "ddpg_silp_plus"):
+    for method in silp_rows:
         success, time = _success(runs, method), _rollout(runs, method)
         if prm_time is None or time is None:
             return None, "no planning time per rollout recorded"
@@ -230,23 +312,34 @@ def _beats_prm(runs):
     return holds, f"{'; '.join(parts)}; PRM-0.1 {prm_success:.3f} in {prm_time:.3g} s"
 
 
-CHECKS = [
-    ("SAC-SILP+ ≥ SAC-Demon ≥ SAC (success rate)", ("sac_silp_plus", "sac_demon", "sac"),
-     lambda runs: _chain(runs, ("sac_silp_plus", "sac_demon", "sac"), strict=False)),
-    ("DDPG-SILP+ > DDPG (success rate)", ("ddpg_silp_plus", "ddpg"),
-     lambda runs: _chain(runs, ("ddpg_silp_plus", "ddpg"), strict=True)),
-    ("the learned planners SAC-SILP+ and DDPG-SILP+ beat PRM-0.1 at a similar time per rollout "
-     "(a higher success rate, in at most PRM-0.1's time per rollout)", ("sac_silp_plus", "ddpg_silp_plus", "prm_0.1"),
-     _beats_prm),
-    ("BC-SAC-SILP+ > BC-PRM (success rate)", ("bc_sac_silp_plus", "bc_prm"),
-     lambda runs: _chain(runs, ("bc_sac_silp_plus", "bc_prm"), strict=True)),
-]
+def _checks_of(suffix: str) -> list:
+    """The paper's orderings for its SILP+ rows (``suffix=""``) or for the extended ones (``"_ext"``)."""
+    sac, ddpg, bc = f"sac_silp_plus{suffix}", f"ddpg_silp_plus{suffix}", f"bc_sac_silp_plus{suffix}"
+    name = "" if not suffix else " extended"
+    return [
+        (f"SAC-SILP+{name} ≥ SAC-Demon ≥ SAC (success rate)", (sac, "sac_demon", "sac"),
+         lambda runs: _chain(runs, (sac, "sac_demon", "sac"), strict=False)),
+        (f"DDPG-SILP+{name} > DDPG (success rate)", (ddpg, "ddpg"),
+         lambda runs: _chain(runs, (ddpg, "ddpg"), strict=True)),
+        (f"the learned planners SAC-SILP+{name} and DDPG-SILP+{name} beat PRM-0.1 at a similar time per rollout "
+         "(a higher success rate, in at most PRM-0.1's time per rollout)", (sac, ddpg, "prm_0.1"),
+         lambda runs: _beats_prm(runs, (sac, ddpg))),
+        (f"BC-SAC-SILP+{name} > BC-PRM (success rate)", (bc, "bc_prm"),
+         lambda runs: _chain(runs, (bc, "bc_prm"), strict=True)),
+    ]
 
 
-def checks(runs: dict[str, list[dict]]) -> list[tuple[str, str, str]]:
-    """``[(check, "holds" | "does not hold" | "not run", the numbers)]``, on the means over seeds."""
+CHECKS = _checks_of("")
+
+
+def checks(runs: dict[str, list[dict]], every_row: bool = True) -> list[tuple[str, str, str]]:
+    """``[(check, "holds" | "does not hold" | "not run", the numbers)]``, on the means over seeds: the paper's
+    orderings for its SILP+ rows (unless none ran and not ``every_row``), and again for the extended rows
+    where any of them ran."""
     out = []
-    for text, needs, evaluate in CHECKS:
+    paper = every_row or any(m in runs for m in ("sac_silp_plus", "ddpg_silp_plus", "bc_sac_silp_plus"))
+    extended = any(m.endswith("_ext") for m in runs)
+    for text, needs, evaluate in (CHECKS if paper else []) + (_checks_of("_ext") if extended else []):
         missing = [label(m) for m in needs if _success(runs, m) is None]
         if missing:
             out.append((text, "not run", f"missing: {', '.join(missing)}"))
@@ -309,7 +402,7 @@ def plot_curves(runs: dict[str, list[dict]], path: Path) -> list[str]:
         (line,) = ax.plot(x, mean, marker="." if len(x) < 30 else None, label=f"{label(method)} ({n} seed{'s' if n > 1 else ''})")
         ax.fill_between(x, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=line.get_color(), alpha=0.2)
     ax.set_xlabel("training episodes")
-    ax.set_ylabel("test success rate")
+    ax.set_ylabel("success rate (periodic evaluations)")
     ax.set_ylim(0, 1.02)
     # the paper's x axis: epochs of 10 episodes
     ax.secondary_xaxis("top", functions=(lambda e: e / 10, lambda p: p * 10)).set_xlabel("paper's epochs (10 episodes)")
@@ -334,7 +427,8 @@ def _get(tree: dict | None, dotted: str):
 
 # the budget of a run, as its config.yaml states it (each key where a recipe's config has it)
 BUDGET_KEYS = {
-    "collector.total_frames": "training env steps (the RL methods)",
+    "collector.total_episodes": "training episodes (the RL methods; the run stops after the batch that completes them)",
+    "collector.total_frames": "training env steps (the RL methods; a cap where total_episodes is set)",
     "n_demos": "demonstration episodes attempted (BC)",
     "optim.n_updates": "gradient updates (BC)",
     "budget_s": "planning time per task, s (PRM)",
@@ -400,36 +494,51 @@ def provenance_lines(runs: dict[str, list[dict]], budget_heading: str) -> list[s
 
 
 # ------------------------------------------------------------------ the block
+TABLE1_HEADINGS = {
+    "table1": "### Table 1 at the paper's budget: success rate, training time, planning time (generated)",
+    "table1_40k": "### Table 1 at 40k frames (a record of the earlier, shorter runs; generated)",
+}
+
+
+def markers(name: str) -> tuple[str, str]:
+    return f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+
+
 def block(runs: dict[str, list[dict]], results: Path, figure: Path | None, out: Path, command: str,
-          plotted: list[str]) -> str:
+          plotted: list[str], name: str = "table1") -> str:
+    begin, end = markers(name)
+    every_row = name == "table1"  # the table at the paper's budget lists what is still to run
     lines = [
-        BEGIN,
-        "### Table 1: success rate, training time, planning time (generated)",
+        begin,
+        TABLE1_HEADINGS.get(name, f"### {name} (generated)"),
         "",
         f"Generated by `{command}` from the runs in `{results}` (every number below is read from their "
         "`summary.json`, `history.json`, `config.yaml` and `sweep.json`, except the paper's columns: Table 1 "
         "of Luo & Schomaker, three seeds each, 1000 test reaches, 1K epochs of 10 episodes).",
         "",
-        table(runs),
+        table(runs, every_row),
         "",
         "Mean (std) over the seeds (std with ddof=0; one seed: its value). Training time is the run's "
         "`train_wall_s` (* : the PRM planners do not train); planning time per rollout is "
-        "`rollout_time_per_episode_s`, the wall time of the batched evaluation rollout divided by its tasks.",
+        "`rollout_time_per_episode_s`, the wall time of the batched evaluation rollout divided by its tasks. "
+        "Settings, read from each run's `config.yaml`: *paper's* is the paper's SILP+ as written "
+        "(`recipes/config/paper_settings.yaml`); *ours* lists each of our additions the run had on "
+        "(`docs/paper_vs_ours.md`). The paper's figures beside an extended row are those of its own method.",
         "",
     ]
-    notes = seed_notes(runs)
+    notes = seed_notes(runs, every_row)
     if notes:
         lines += [f"Rows with fewer than {PAPER_SEEDS} seeds:", "", *notes, ""]
     lines += ["Orderings reported by the paper, on our means:", ""]
-    lines += [f"- {status}: {text} ({numbers})" for text, status, numbers in checks(runs)]
+    lines += [f"- {status}: {text} ({numbers})" for text, status, numbers in checks(runs, every_row)]
     lines += ["", *provenance_lines(runs, "Budget (the runs' config.yaml; the paper: 1K epochs of 10 episodes):")]
     if figure is not None and plotted:
         rel = os.path.relpath(figure, out.parent)
         lines += [f"![Success rates during training]({rel})", "",
-                  f"Test success rate against training episodes, mean ± std over seeds ({', '.join(label(m) for m in plotted)}).", ""]
+                  f"Success rate of the periodic evaluations (the tasks of each run's `eval.seed`) against training episodes, mean ± std over seeds ({', '.join(label(m) for m in plotted)}).", ""]
     elif figure is not None:
         lines += ["No run has a training history: no learning-curve figure.", ""]
-    lines.append(END)
+    lines.append(end)
     return "\n".join(lines)
 
 
@@ -543,8 +652,9 @@ def write_block(path: Path, text: str, begin: str = BEGIN, end_marker: str = END
 
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--block", choices=("table1", "tasks", "speed"), default="table1",
-                        help="table1: the paper's Table 1; tasks: SILP+ on the UR5e and Panda task models; "
+    parser.add_argument("--block", choices=("table1", "table1_40k", "tasks", "speed"), default="table1",
+                        help="table1: the paper's Table 1 at its budget; table1_40k: the earlier 40k-frame runs; "
+                             "tasks: SILP+ on the UR5e and Panda task models; "
                              "speed: the benchmarks' outputs (results/benchmarks)")
     parser.add_argument("--results", type=Path, default=None,
                         help="the sweep's results_dir (results/table1 or results/tasks by --block)")
@@ -568,8 +678,8 @@ def main(argv: list[str] | None = None) -> str:
         text = tasks_block(runs, args.results, args.figure, args.out, command, plotted)
         write_block(args.out, text, TASKS_BEGIN, TASKS_END)
     else:
-        text = block(runs, args.results, args.figure, args.out, command, plotted)
-        write_block(args.out, text)
+        text = block(runs, args.results, args.figure, args.out, command, plotted, args.block)
+        write_block(args.out, text, *markers(args.block))
     print(text)
     print(f"wrote {args.out} and {args.figure}" if plotted else f"wrote {args.out}")
     return text

@@ -126,12 +126,13 @@ def test_sweep_report_and_restart(tmp_path, capsys):
         for m, label in (("sac", "SAC"), ("sac_demon", "SAC-Demon")):
             cells = _cells(block, label)
             runs = [summaries[m, s] for s in SEEDS]
-            assert _agrees(cells[1], np.mean([r["success_rate"] for r in runs])), cells
-            assert _agrees(cells[3], np.mean([r["train_wall_s"] for r in runs])), cells
-            assert _agrees(cells[5], np.mean([r["rollout_time_per_episode_s"] for r in runs])), cells
-            assert cells[7] == "2"
-            assert cells[2] == f"{report.PAPER_TABLE1[m]['success'][0]:.3f} ({report.PAPER_TABLE1[m]['success'][1]:.3f})"
-        assert "- SAC: 2 seeds (0, 1)" in block and "- SAC-SILP+: not run" in block
+            assert cells[1] == "paper's"  # the baselines' method configs hold the paper's settings
+            assert _agrees(cells[2], np.mean([r["success_rate"] for r in runs])), cells
+            assert _agrees(cells[4], np.mean([r["train_wall_s"] for r in runs])), cells
+            assert _agrees(cells[6], np.mean([r["rollout_time_per_episode_s"] for r in runs])), cells
+            assert cells[8] == "2"
+            assert cells[3] == f"{report.PAPER_TABLE1[m]['success'][0]:.3f} ({report.PAPER_TABLE1[m]['success'][1]:.3f})"
+        assert "- SAC: 2 seeds (0, 1)" in block and "- SAC-SILP+ (paper's): not run" in block
         assert "not run: SAC-SILP+ ≥ SAC-Demon ≥ SAC" in block
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
