@@ -17,6 +17,7 @@ import warnings
 from pathlib import Path
 
 import hydra
+import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
 from torchrl._utils import timeit
@@ -91,7 +92,11 @@ def train(cfg: DictConfig) -> dict:
         if seed != cfg.eval.seed:  # the test tasks' figure: not a point of the validation curve
             return metrics, rollout
         point = {"frames": counters["frames"], "episodes": counters["episodes"],
-                 "train_wall_s": counters["train_wall_s"], **metrics}
+                 "train_wall_s": counters["train_wall_s"], "collisions": counters["collisions"], **metrics}
+        kept_updates = counters.get("bc_kept_updates", 0)
+        if kept_updates:  # the share of demo actions the BC filter kept over the updates since the last point (Fig. 7)
+            point["bc_filter_fraction"] = counters["bc_kept_sum"] / kept_updates
+        counters["bc_kept_sum"], counters["bc_kept_updates"] = 0.0, 0
         if not history or history[-1]["frames"] != counters["frames"]:
             history.append(point)
         if counters["time_to_095_s"] is None and metrics["success_rate"] >= 0.95:
@@ -154,6 +159,11 @@ def train(cfg: DictConfig) -> dict:
             counters["train_wall_s"] += time.perf_counter() - tick
             counters["planning_s"] = buffers.demo_buffer.planning_time
             metrics = utils.batch_metrics(batch, losses, counters, len(buffers.demo_buffer))
+            if losses and "bc_filter_fraction" in losses[0].keys():  # over the updates whose batch held demos
+                with_demos = torch.stack([td["num_demos"] for td in losses]) > 0
+                kept = torch.stack([td["bc_filter_fraction"] for td in losses])[with_demos]
+                counters["bc_kept_sum"] = counters.get("bc_kept_sum", 0.0) + kept.sum().item()
+                counters["bc_kept_updates"] = counters.get("bc_kept_updates", 0) + kept.numel()
             if counters["frames"] - last_eval_frames >= cfg.eval.every_frames:
                 last_eval_frames = counters["frames"]
                 with timeit("eval"):

@@ -440,7 +440,9 @@ def truncate_logs(log_dir: Path, last_step: int) -> int:
 
 def new_counters() -> dict:
     return {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0, "swept_collisions": 0,
-            "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None}
+            "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None,
+            # the BC filter's kept share of demo rows, summed over the updates since the last evaluation point
+            "bc_kept_sum": 0.0, "bc_kept_updates": 0}
 
 
 def training_state(loss, optimizers, averaged, counters, history, assembler, logger, env) -> dict:
