@@ -542,6 +542,215 @@ def block(runs: dict[str, list[dict]], results: Path, figure: Path | None, out: 
     return "\n".join(lines)
 
 
+# ------------------------------------------- Tables 2, 3, 4 and A.1 of the paper
+# Each row: (method in the results dir, label, the paper's figures: success (mean, std), training time (s),
+# collisions during training), from the paper's tables (the LaTeX source: tab:ce-type, tab:gp, tab:rfilters,
+# tab:prm-dis). A std the paper does not give is None; so is a figure it does not give.
+PAPER_TABLES = {
+    "table2": {
+        "title": "Table 2: collision handling (type 0: the episode ends; type 1: the arm stays, the episode goes on; "
+                 "type 2: the arm stays, a recovery action follows)",
+        "rows": [
+            ("sac_collision0", "SAC, type-0", (0.819, 0.079), (_hms("06:18:07"), _hms("00:40:44")), None),
+            ("sac_collision1", "SAC, type-1", (0.423, 0.113), (_hms("10:43:53"), _hms("00:22:14")), None),
+            ("sac", "SAC, type-2", (0.865, 0.021), (_hms("07:12:06"), _hms("00:05:08")), None),
+            ("sac_silp_plus_collision0", "SAC-SILP+ (paper's), type-0", (0.952, 0.027),
+             (_hms("04:59:39"), _hms("00:06:08")), None),
+            ("sac_silp_plus_collision1", "SAC-SILP+ (paper's), type-1", (0.942, 0.015),
+             (_hms("06:45:16"), _hms("00:32:18")), None),
+            ("sac_silp_plus", "SAC-SILP+ (paper's), type-2", (0.971, 0.010), (_hms("06:10:02"), _hms("00:14:13")), None),
+        ],
+        # the paper: type-2 best for both, type-1 worst ("we selected type-2"; Table 2)
+        "orderings": [("SAC: type-2 ≥ type-0 ≥ type-1", ("sac", "sac_collision0", "sac_collision1")),
+                      ("SAC-SILP+: type-2 ≥ type-0 ≥ type-1",
+                       ("sac_silp_plus", "sac_silp_plus_collision0", "sac_silp_plus_collision1"))],
+    },
+    "table3": {
+        "title": "Table 3: GP-guided recovery against random recovery (the paper's SAC-SILP+)",
+        "rows": [
+            ("sac_silp_plus_random_recovery", "SAC-SILP+ (paper's), random recovery", (0.973, None),
+             (_hms("06:28:50"), None), 30844),
+            ("sac_silp_plus", "SAC-SILP+ (paper's), GP recovery", (0.973, None), (_hms("05:22:58"), None), 6153),
+        ],
+        "orderings": [("GP recovery: fewer collisions during training than random recovery",
+                       ("sac_silp_plus_random_recovery", "sac_silp_plus"), "collisions_during_training"),
+                      ("GP recovery: a success rate at least that of random recovery",
+                       ("sac_silp_plus", "sac_silp_plus_random_recovery"))],
+    },
+    "table4": {
+        "title": "Table 4: the BC filter (reward filter, SILP+; Q-filter, SILP's; none)",
+        "rows": [
+            ("sac_silp_plus", "SAC-SILP+ (paper's), reward filter", (0.973, None), (_hms("05:22:58"), None), None),
+            ("sac_silp_plus_q_filter", "SAC-SILP+ (paper's), Q-filter", (0.966, None), (_hms("06:07:47"), None), None),
+            ("sac_silp_plus_no_filter", "SAC-SILP+ (paper's), no filter", None, None, None),
+        ],
+        "orderings": [("reward filter ≥ Q-filter (success rate)", ("sac_silp_plus", "sac_silp_plus_q_filter"))],
+    },
+    "tableA1": {
+        "title": "Table A.1: SILP+'s success rate against the roadmap distance d",
+        "rows": [
+            ("sac_silp_plus_d0.10", "SAC-SILP+ (paper's), d = 0.10", (0.961, None), None, None),
+            ("sac_silp_plus", "SAC-SILP+ (paper's), d = 0.15", (0.965, None), None, None),
+            ("sac_silp_plus_d0.20", "SAC-SILP+ (paper's), d = 0.20", (0.933, None), None, None),
+            ("sac_silp_plus_d0.30", "SAC-SILP+ (paper's), d = 0.30", (0.782, None), None, None),
+            ("sac_silp_plus_d0.40", "SAC-SILP+ (paper's), d = 0.40", (0.663, None), None, None),
+        ],
+        # the paper: best at 0.15, falling from 0.15 on ("we choose the final distance of 0.15m")
+        "orderings": [("d = 0.15 ≥ 0.20 ≥ 0.30 ≥ 0.40", ("sac_silp_plus", "sac_silp_plus_d0.20", "sac_silp_plus_d0.30",
+                                                     "sac_silp_plus_d0.40")),
+                      ("d = 0.15 ≥ 0.10", ("sac_silp_plus", "sac_silp_plus_d0.10"))],
+    },
+}
+ABLATIONS = {  # sweep_ablations.yaml: ours with one setting at the paper's value (or lambda2 at 1)
+    "sac_silp_plus_ext_no_goal_node": "planner.goal_node=false",
+    "sac_silp_plus_ext_no_own_query": "planner.own_query=false",
+    "sac_silp_plus_ext_greedy_search": "planner.method=greedy",
+    "sac_silp_plus_ext_halving_insert_nodes": "planner.insert_nodes=halving",
+    "sac_silp_plus_ext_no_goal_relative": "network.goal_relative=false",
+    "sac_silp_plus_ext_no_next_tcp": "network.next_tcp_feature=false",
+    "sac_silp_plus_ext_no_averaged_actor": "eval.actor_average_decay=null",
+    "sac_silp_plus_ext_auto_entropy": "optim.target_entropy=auto",
+    "sac_silp_plus_ext_unmasked_candidates": "exploration.mask_colliding_candidates=false",
+    "sac_silp_plus_ext_lambda2_1": "silp.lambda2=1",
+}
+
+
+def _cell(values: list[float], fmt) -> str:
+    return _mean_std_with(values, fmt) if values else "—"
+
+
+def _paper_cell(figure, fmt) -> str:
+    if figure is None:
+        return "—"
+    if isinstance(figure, tuple):
+        mean, std = figure
+        return fmt(mean) if std is None else f"{fmt(mean)} ({fmt(std)})"
+    return fmt(figure)
+
+
+def paper_table_rows(runs: dict[str, list[dict]], name: str) -> list[str]:
+    spec = PAPER_TABLES[name]
+    rows = ["| Method | Settings | Success rate | paper | Training time (h:mm:ss) | paper | Collisions during training "
+            "| paper | Seeds | Training episodes (frames) |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for method, text, success, train_s, collisions in spec["rows"]:
+        ours = runs.get(method, [])
+        episodes, frames = _mean(ours, "episodes"), _mean(ours, "frames")
+        budget = "—" if episodes is None else f"{episodes:,.0f} ({frames:,.0f})"
+        rows.append(
+            f"| {text} (`{method}`) | {settings_text(ours)} | {mean_std(_values(ours, 'success_rate')) if ours else 'not run'} "
+            f"| {_paper_cell(success, lambda x: f'{x:.3f}')} | {_cell(_values(ours, 'train_wall_s'), hms)} "
+            f"| {_paper_cell(train_s, hms)} | {_cell(_values(ours, 'collisions_during_training'), lambda x: f'{x:,.0f}')} "
+            f"| {_paper_cell(collisions, lambda x: f'{x:,}')} | {len(ours)} | {budget} |")
+    return rows
+
+
+def paper_table_checks(runs: dict[str, list[dict]], name: str) -> list[str]:
+    out = []
+    for ordering in PAPER_TABLES[name]["orderings"]:
+        text, methods = ordering[0], ordering[1]
+        key = ordering[2] if len(ordering) > 2 else "success_rate"
+        values = [_mean(runs.get(m, []), key) for m in methods]
+        if any(v is None for v in values):
+            missing = [m for m, v in zip(methods, values) if v is None]
+            out.append(f"- not run: {text} (missing: {', '.join(missing)})")
+            continue
+        holds = all(a >= b for a, b in zip(values, values[1:]))
+        fmt = (lambda v: f"{v:,.0f}") if key != "success_rate" else (lambda v: f"{v:.3f}")
+        out.append(f"- {'holds' if holds else 'does not hold'}: {text} "
+                   f"({' ≥ '.join(f'{m} {fmt(v)}' for m, v in zip(methods, values))})")
+    return out
+
+
+def filter_share_figure(runs: dict[str, list[dict]], path: Path) -> list[str]:
+    """Fig. 7 as we measure it: the share of demo actions the BC filter keeps, against training episodes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plotted = []
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for method, text, *_ in PAPER_TABLES["table4"]["rows"]:
+        histories = [[{"episodes": p["episodes"], "success_rate": p["bc_filter_fraction"]} for p in r["history"]
+                      if p.get("bc_filter_fraction") is not None] for r in runs.get(method, [])]
+        histories = [h for h in histories if h]
+        if not histories:
+            continue
+        x, mean, std = mean_std_curve(histories)
+        (line,) = ax.plot(x, mean, label=f"{text} ({len(histories)} seed{'s' if len(histories) > 1 else ''})")
+        ax.fill_between(x, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=line.get_color(), alpha=0.2)
+        plotted.append(method)
+    if plotted:
+        ax.set_xlabel("training episodes")
+        ax.set_ylabel("share of demo actions the filter keeps")
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize="small")
+        fig.tight_layout()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return plotted
+
+
+def paper_table_block(runs: dict[str, list[dict]], name: str, results: Path, figure: Path | None, out: Path,
+                      command: str) -> str:
+    begin, end = markers(name)
+    spec = PAPER_TABLES[name]
+    mine = {m: runs[m] for m, *_ in spec["rows"] if m in runs}
+    lines = [begin, f"### {spec['title']} (generated)", "",
+             f"Generated by `{command}` from the runs in `{results}` (their `summary.json`, `history.json`, "
+             "`config.yaml`, `sweep.json`); the paper's columns are its own table's figures. Success rate: the 1000 "
+             "test tasks, mean (std) over seeds (ddof=0). Collisions during training: the run's count of colliding "
+             "steps. A row shared with another table is the same runs.", "",
+             *paper_table_rows(runs, name), "", "Orderings reported by the paper, on our means:", "",
+             *paper_table_checks(runs, name), ""]
+    if name == "table4" and figure is not None:
+        plotted = filter_share_figure(runs, figure)
+        if plotted:
+            lines += [f"![The share of demo actions the BC filter keeps]({os.path.relpath(figure, out.parent)})", "",
+                      "Fig. 7 as we measure it: the share of the demo actions of each batch that the filter keeps "
+                      "(`bc_filter_fraction` of the history points, mean over the updates since the previous point), "
+                      "mean ± std over seeds. The paper plots the number of demo actions better than the policy's.", ""]
+    if mine:
+        lines += provenance_lines(mine, "Budget (the runs' config.yaml; the paper: 1K epochs of 10 episodes):")
+    lines.append(end)
+    return "\n".join(lines)
+
+
+def ablations_block(runs: dict[str, list[dict]], results: Path, command: str) -> str:
+    """Ours (sac_silp_plus_ext, seed 0) against itself with one setting set back, on the validation tasks."""
+    begin, end = markers("ablations")
+    base = {r["seed"]: r for r in runs.get("sac_silp_plus_ext", [])}.get(0)
+
+    def validation(run):
+        return run["summary"].get("validation_success_rate") if run else None
+
+    rows = ["| Run | Changed setting | Validation success | vs ours | Test success | Training episodes (frames) "
+            "| Training time |", "|---|---|---:|---:|---:|---:|---:|"]
+    for method, change in [("sac_silp_plus_ext", "— (ours, all additions)")] + list(ABLATIONS.items()):
+        run = {r["seed"]: r for r in runs.get(method, [])}.get(0)
+        if run is None:
+            rows.append(f"| `{method}` | `{change}` | not run | | | | |")
+            continue
+        v, b, summ = validation(run), validation(base), run["summary"]
+        delta = f"{v - b:+.3f}" if v is not None and b is not None and method != "sac_silp_plus_ext" else ""
+        rows.append(f"| `{method}` | `{change}` | {'—' if v is None else f'{v:.3f}'} | {delta} "
+                    f"| {summ['success_rate']:.3f} | {summ['episodes']:,} ({summ['frames']:,}) "
+                    f"| {hms(summ['train_wall_s'])} |")
+    mine = {m: rs for m, rs in runs.items() if m in ABLATIONS or m == "sac_silp_plus_ext"}
+    lines = [begin, "### Which addition matters: ours minus one at a time, seed 0 (generated)", "",
+             f"Generated by `{command}` from the seed-0 runs in `{results}`. Validation success: the last periodic "
+             "evaluation, on the validation tasks (`eval.seed`), the figure the defaults are judged by; vs ours: "
+             "its difference from ours (all additions, seed 0). Test success: the 1000 test tasks, read once at "
+             "the end. One seed each: a difference within a few hundredths is within seed noise (compare the "
+             "spread of ours over its 3 seeds in Table 1).", "", *rows, ""]
+    if mine:
+        lines += provenance_lines(mine, "Budget (the runs' config.yaml):")
+    lines.append(end)
+    return "\n".join(lines)
+
+
 def tasks_table(runs: dict[str, list[dict]]) -> str:
     rows = ["| Task | Method | Success rate | Seeds | Frames | Training time | Time to 0.95 | Collisions in training "
             "| of which swept |", "|---|---|---|---|---|---|---|---|---|"]
@@ -650,19 +859,26 @@ def write_block(path: Path, text: str, begin: str = BEGIN, end_marker: str = END
     path.write_text(new)
 
 
+RESULTS_OF = {"speed": "results/benchmarks", "tasks": "results/tasks", "table1_40k": "results/table1_40k",
+              **{name: "results/paper_budget" for name in ("table1", "table2", "table3", "table4", "tableA1", "ablations")}}
+
+
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--block", choices=("table1", "table1_40k", "tasks", "speed"), default="table1",
-                        help="table1: the paper's Table 1 at its budget; table1_40k: the earlier 40k-frame runs; "
+    parser.add_argument("--block", choices=("table1", "table2", "table3", "table4", "tableA1", "ablations",
+                                            "table1_40k", "tasks", "speed"), default="table1",
+                        help="table1-4, tableA1: the paper's tables at its budget (results/paper_budget); ablations: "
+                             "ours minus one addition at a time; table1_40k: the earlier 40k-frame runs; "
                              "tasks: SILP+ on the UR5e and Panda task models; "
                              "speed: the benchmarks' outputs (results/benchmarks)")
     parser.add_argument("--results", type=Path, default=None,
-                        help="the sweep's results_dir (results/table1 or results/tasks by --block)")
+                        help="the sweep's results_dir (results/paper_budget, results/tasks, ... by --block)")
     parser.add_argument("--out", type=Path, default=Path("docs/results.md"), help="the markdown file to update")
     parser.add_argument("--figure", type=Path, default=None,
-                        help="the learning-curve PNG (docs/table1_curves.png or docs/tasks_curves.png by --block)")
+                        help="the figure (docs/<block>_curves.png: Table 1's and the tasks' learning curves, "
+                             "Table 4's filter share)")
     args = parser.parse_args(argv)
-    args.results = args.results or Path("results/benchmarks" if args.block == "speed" else f"results/{args.block}")
+    args.results = args.results or Path(RESULTS_OF.get(args.block, f"results/{args.block}"))
     args.figure = args.figure or Path(f"docs/{args.block}_curves.png")
     given = sys.argv[1:] if argv is None else argv
     command = " ".join(["python recipes/report.py", *map(shlex.quote, given)])
@@ -673,6 +889,19 @@ def main(argv: list[str] | None = None) -> str:
         print(f"wrote {args.out}")
         return text
     runs = load_results(args.results)
+    if args.block in PAPER_TABLES:
+        text = paper_table_block(runs, args.block, args.results, args.figure if args.block == "table4" else None,
+                                 args.out, command)
+        write_block(args.out, text, *markers(args.block))
+        print(text)
+        return text
+    if args.block == "ablations":
+        text = ablations_block(runs, args.results, command)
+        write_block(args.out, text, *markers(args.block))
+        print(text)
+        return text
+    if args.block == "table1":  # the paper's Table 1 rows; the other tables' runs share the results dir
+        runs = {m: rs for m, rs in runs.items() if m in ROW_ORDER}
     plotted = plot_curves(runs, args.figure)
     if args.block == "tasks":
         text = tasks_block(runs, args.results, args.figure, args.out, command, plotted)

@@ -1,0 +1,102 @@
+"""recipes/report.py: the blocks of the paper's Tables 2, 3, 4, A.1 and of the ablations, from synthetic results files."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+import report  # noqa: E402
+
+PAPER = yaml.safe_load((RECIPES / "config" / "paper_settings.yaml").read_text())
+
+
+def _run(root: Path, method: str, seed: int, success: float, collisions: int = 100, validation: float | None = None,
+         kept: list[float] | None = None, config: dict | None = None):
+    run = root / method / f"seed{seed}"
+    run.mkdir(parents=True)
+    summary = {"success_rate": success, "validation_success_rate": validation, "frames": 200_000 + seed,
+               "episodes": 10_000 + seed, "train_wall_s": 1800.0 + 60 * seed, "collisions_during_training": collisions}
+    (run / "summary.json").write_text(json.dumps(summary))
+    history = [{"episodes": e, "success_rate": success, "frames": 20 * e,
+                **({"bc_filter_fraction": kept[i]} if kept else {})} for i, e in enumerate((2000, 6000, 10000))]
+    (run / "history.json").write_text(json.dumps({"history": history}))
+    cfg = config or {"algorithm": "sac", "silp": {"demos": True}, "exploration": {"mode": "gp"}, **PAPER}
+    (run / "config.yaml").write_text(yaml.safe_dump({**cfg, "collector": {"total_episodes": 10000}}))
+
+
+def _row(text: str, method: str) -> list[str]:
+    line = next(line for line in text.splitlines() if f"(`{method}`)" in line or f"| `{method}` |" in line)
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def test_table2_rows_and_orderings(tmp_path):
+    values = {"sac": [0.8, 0.9], "sac_collision0": [0.85, 0.87], "sac_collision1": [0.4, 0.5],
+              "sac_silp_plus": [0.95, 0.97, 0.96], "sac_silp_plus_collision0": [0.97, 0.98]}
+    for method, successes in values.items():
+        for seed, v in enumerate(successes):
+            _run(tmp_path, method, seed, v)
+    runs = report.load_results(tmp_path)
+    text = report.paper_table_block(runs, "table2", tmp_path, None, tmp_path / "r.md", "cmd")
+    cells = _row(text, "sac")
+    assert cells[1] == "paper's" and cells[2] == f"{np.mean([0.8, 0.9]):.3f} ({np.std([0.8, 0.9]):.3f})"
+    assert cells[3] == "0.865 (0.021)" and cells[8] == "2"
+    assert _row(text, "sac_silp_plus_collision1")[2] == "not run"
+    # SAC: type-0 (0.86) beats type-2 (0.85): does not hold; SILP+ type-1 missing: not run
+    assert "- does not hold: SAC: type-2 ≥ type-0 ≥ type-1" in text
+    assert "- not run: SAC-SILP+: type-2 ≥ type-0 ≥ type-1 (missing: sac_silp_plus_collision1)" in text
+    assert text.startswith("<!-- table2:begin -->") and text.endswith("<!-- table2:end -->")
+
+
+def test_table3_compares_collisions(tmp_path):
+    for seed in range(3):
+        _run(tmp_path, "sac_silp_plus", seed, 0.97, collisions=6000 + seed)
+        _run(tmp_path, "sac_silp_plus_random_recovery", seed, 0.96, collisions=30000 + 10 * seed)
+    text = report.paper_table_block(report.load_results(tmp_path), "table3", tmp_path, None, tmp_path / "r.md", "cmd")
+    assert _row(text, "sac_silp_plus")[6] == f"{np.mean([6000, 6001, 6002]):,.0f} ({np.std([6000, 6001, 6002]):,.0f})"
+    assert _row(text, "sac_silp_plus")[7] == "6,153"
+    assert "- holds: GP recovery: fewer collisions during training than random recovery" in text
+    assert "- holds: GP recovery: a success rate at least that of random recovery" in text
+
+
+def test_table4_draws_the_filter_share(tmp_path):
+    for seed in range(2):
+        _run(tmp_path, "sac_silp_plus", seed, 0.97, kept=[0.6, 0.3 + 0.1 * seed, 0.1])
+        _run(tmp_path, "sac_silp_plus_q_filter", seed, 0.98, kept=[0.7, 0.6, 0.5])
+    png = tmp_path / "share.png"
+    text = report.paper_table_block(report.load_results(tmp_path), "table4", tmp_path, png, tmp_path / "r.md", "cmd")
+    assert png.stat().st_size > 0 and "share.png" in text
+    assert "- does not hold: reward filter ≥ Q-filter (success rate)" in text
+    assert _row(text, "sac_silp_plus_no_filter")[2] == "not run"
+
+
+def test_ablations_report_the_validation_difference(tmp_path):
+    ours = {"algorithm": "sac", "silp": {"demos": True}, "exploration": {"mode": "gp"}}  # schema defaults: ours
+    _run(tmp_path, "sac_silp_plus_ext", 0, 0.98, validation=0.975, config=ours)
+    _run(tmp_path, "sac_silp_plus_ext", 1, 0.97, validation=0.5, config=ours)  # other seeds are not the reference
+    _run(tmp_path, "sac_silp_plus_ext_no_next_tcp", 0, 0.95, validation=0.94,
+         config={**ours, "network": {"next_tcp_feature": False}})
+    text = report.ablations_block(report.load_results(tmp_path), tmp_path, "cmd")
+    cells = _row(text, "sac_silp_plus_ext_no_next_tcp")
+    assert cells[1] == "`network.next_tcp_feature=false`" and cells[2] == "0.940" and cells[3] == f"{0.94 - 0.975:+.3f}"
+    assert _row(text, "sac_silp_plus_ext_auto_entropy")[2] == "not run"
+
+
+@pytest.mark.parametrize("name", ["table2", "table3", "table4", "tableA1"])
+def test_every_paper_table_row_is_a_sweep_method(name):
+    registry = yaml.safe_load((RECIPES / "config" / "sweep.yaml").read_text())["registry"]
+    assert {m for m, *_ in report.PAPER_TABLES[name]["rows"]} <= set(registry)
+
+
+def test_every_ablation_is_in_the_ablation_sweep():
+    sweep = yaml.safe_load((RECIPES / "config" / "sweep_ablations.yaml").read_text())
+    assert set(report.ABLATIONS) == set(sweep["methods"]) == set(sweep["registry"])
+    for method, change in report.ABLATIONS.items():
+        key, value = change.split("=")
+        assert f"{key}={value}" in sweep["registry"][method]["overrides"] or f"{key}={value}.0" in sweep["registry"][method]["overrides"]
