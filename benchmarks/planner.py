@@ -84,7 +84,7 @@ from torchrl_silp.planning import (
 
 _has_scipy = importlib.util.find_spec("scipy") is not None
 
-STEPS = 50  # episode length of the paper's task (and the env's max_steps)
+STEPS = 50  # the env's episode length (max_steps; ours, the paper does not state it)
 D_VALUES = (0.10, 0.15, 0.20, 0.25, 0.30, 0.35, 0.40)
 # Table A.1 of the paper: d -> (planning SR, avg steps, planning time s per successful path)
 PAPER = {

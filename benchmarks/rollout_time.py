@@ -15,7 +15,7 @@ time per rollout".
 
 Run::
 
-    python benchmarks/rollout_time.py results/table1/sac_silp_plus/seed0
+    python benchmarks/rollout_time.py results/paper_budget/sac_silp_plus/seed0
     python benchmarks/rollout_time.py RUN_DIR --tasks 50 --budget 0.1 --threads 1
 """
 

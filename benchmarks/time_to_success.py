@@ -11,7 +11,7 @@ Run::
 
     python benchmarks/time_to_success.py                          # the default config, seed 0
     python benchmarks/time_to_success.py --seed 1 --bar 0.95 compile.compile=false
-    python benchmarks/time_to_success.py method=sac_silp_plus env=panda_reach
+    python benchmarks/time_to_success.py method=sac_silp_plus            # the paper's SILP+ as written
 """
 
 from __future__ import annotations

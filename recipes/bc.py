@@ -1,6 +1,6 @@
 """Behaviour-cloning baselines of the paper's Table 1: BC-SAC-SILP+ and BC-PRM.
 
-    python recipes/bc.py source_run_dir=results/table1/sac_silp_plus/seed0 logger.exp_name=bc_sac_silp_plus
+    python recipes/bc.py source_run_dir=results/paper_budget/sac_silp_plus/seed0 logger.exp_name=bc_sac_silp_plus
     python recipes/bc.py source=prm logger.exp_name=bc_prm
     python recipes/bc.py source=prm resume=true   # continue a killed run; demonstrations are not collected again
 

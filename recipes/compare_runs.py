@@ -5,7 +5,7 @@ Each group is a label and a glob of run directories (the ``run_dir`` of
 ``history.json``)::
 
     python recipes/compare_runs.py \\
-        --group "SAC-SILP+=runs/sac_silp/seed*" --group "SAC=runs/sac/seed*" \\
+        --group "SAC-SILP+ extended=runs/sac_silp_plus_ext/seed*" --group "SAC=runs/sac/seed*" \\
         --png docs/sac_vs_sac_silp.png --markdown sac_vs_sac_silp.md
 
 The curves are test success rate against training episodes; seeds are put on

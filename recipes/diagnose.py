@@ -1,7 +1,7 @@
 """Why does a trained policy fail? Failure analysis of a recipe checkpoint on the fixed test tasks.
 
     python recipes/diagnose.py RUN_DIR [hydra overrides the run was trained with]
-    python recipes/diagnose.py runs/sac_silp/seed0 network.goal_relative=false
+    python recipes/diagnose.py runs/sac_silp_plus_ext/seed0 network.goal_relative=false
     python recipes/diagnose.py runs/ddpg_silp/seed0 algorithm=ddpg
     python recipes/diagnose.py runs/panda/seed0 env=panda_reach
 

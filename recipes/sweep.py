@@ -1,8 +1,9 @@
-"""The sweep of the paper's Table 1: every method x every seed as a Ray task, one run directory each.
+"""The sweep of the paper's tables: every method x every seed as a Ray task, one run directory each.
 
-    python recipes/sweep.py                                  # the whole table, seeds 0-2, a local Ray
+    python recipes/sweep.py                                  # every row of every table, seeds 0-2, a local Ray
     python recipes/sweep.py methods=[sac,sac_silp_plus] seeds=[0] \\
-        "overrides.sac_silp=['collector.total_frames=40000','eval.every_frames=4000']"
+        "overrides.sac_silp=['collector.total_episodes=2000','eval.every_frames=4000']"
+    python recipes/sweep.py --config-name sweep_ablations    # another grid: its own methods and seeds
     python recipes/sweep.py ray.address=auto resources.num_gpus=1   # a running cluster, a GPU per run
     python recipes/sweep.py dry_run=true                     # print the grid and what is finished
 

@@ -463,7 +463,7 @@ def evaluate_prm(
         n_tasks: number of test tasks (paper: 1000).
         seed: seed of the test tasks.
         ompl_seed: seed of OMPL's random generator (see :class:`PRMPlanner`).
-        max_steps: episode length (paper: 50).
+        max_steps: episode length (50 in our tables; the paper does not state it).
         device: device of the test env and of the planner's checks; the model's by default.
         progress: a tqdm bar over the tasks planned.
         edge_step: the planner's edge check resolution (rad); the model's ``motion_resolution`` by default.

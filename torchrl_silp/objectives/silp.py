@@ -420,7 +420,7 @@ class SILPLoss(LossModule):
             raise TypeError(f"{keys.is_demo!r} must be a bool tensor, got {is_demo.dtype}")
         is_demo = is_demo.reshape(n)
         # only the demo rows need the actor's action and the filter's look-ahead:
-        # at the paper's N_D / (N_D + N_pi) = 1/4 that is 4x less model work than
+        # at our default N_D / (N_D + N_pi) = 1/4 (the paper does not state it) that is 4x less model work than
         # masking a full batch (one host sync for the row count)
         rows = is_demo.nonzero().squeeze(-1)
         if rows.numel() == 0:
