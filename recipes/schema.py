@@ -143,9 +143,11 @@ class TrainConfig:
 
 
 def register() -> None:
-    """Register the recipes' schemas: ``train_schema`` (sac_silp, ddpg_silp) and ``bc_schema`` (bc)."""
+    """Register the recipes' schemas: ``train_schema`` (sac_silp, ddpg_silp), ``bc_schema`` (bc) and
+    ``transfer_schema`` (transfer)."""
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
     ConfigStore.instance().store(name="bc_schema", node=BCConfig)
+    ConfigStore.instance().store(name="transfer_schema", node=TransferConfig)
 
 
 # ------------------------------------------------------------------ recipes/bc.py
@@ -200,3 +202,20 @@ class BCConfig:
     eval: BCEvalConfig = field(default_factory=BCEvalConfig)
     checkpoint: BCCheckpointConfig = field(default_factory=BCCheckpointConfig)
     logger: BCLoggerConfig = field(default_factory=BCLoggerConfig)
+
+
+# ------------------------------------------------------------ recipes/transfer.py
+@dataclass
+class TransferConfig:
+    """A trained policy on the MuJoCo twin (``recipes/transfer.py``); every field is documented in ``config/transfer.yaml``."""
+
+    checkpoint: str = "???"
+    scenario: str = "all"
+    noise: str = "all"
+    n_tasks: int = 100
+    seed: int = 0
+    control_dt: float = 0.1
+    max_steps: Optional[int] = None
+    out: Optional[str] = None
+    device: str = "cpu"
+    threads: int = 1

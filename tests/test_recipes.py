@@ -140,7 +140,7 @@ def test_table1_baselines_train(tmp_path, method):
 
 def logged_steps(run_dir: Path) -> dict[str, list[int]]:
     """The steps of every CSV scalar log of a run: ``{"train/episodes": [100, 200, ...], ...}``."""
-    root = run_dir / "logs" / "sac_silp" / "scalars"
+    root = run_dir / "logs" / "sac_silp_plus_ext" / "scalars"  # the default config's exp_name
     return {str(p.relative_to(root).with_suffix("")): [int(row.split(",")[0]) for row in p.read_text().splitlines()]
             for p in sorted(root.rglob("*.csv"))}
 
@@ -215,7 +215,7 @@ def test_kill_at_a_random_time_then_resume_loses_and_repeats_nothing(tmp_path):
 def test_sigterm_saves_then_stops_and_resume_continues(tmp_path):
     run_dir = tmp_path / "run"
     ckpt = run_dir / "checkpoint"
-    episodes_log = run_dir / "logs" / "sac_silp" / "scalars" / "train" / "episodes.csv"
+    episodes_log = run_dir / "logs" / "sac_silp_plus_ext" / "scalars" / "train" / "episodes.csv"
     proc = start_run(run_dir, "collector.total_frames=100000", "checkpoint.every_iters=100000", "checkpoint.every_s=1e6")
     try:
         wait_for(proc, lambda: episodes_log.exists() and len(episodes_log.read_text().splitlines()) >= 2, "logged batch")

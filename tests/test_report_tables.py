@@ -100,3 +100,24 @@ def test_every_ablation_is_in_the_ablation_sweep():
     for method, change in report.ABLATIONS.items():
         key, value = change.split("=")
         assert f"{key}={value}" in sweep["registry"][method]["overrides"] or f"{key}={value}.0" in sweep["registry"][method]["overrides"]
+
+
+def test_table5_means_over_seeds_beside_the_papers_scenarios(tmp_path):
+    perception = {"obstacle_noise": 0.01, "latency_steps": 1, "joint_noise": 1e-4}
+    for seed, (free, block) in enumerate([(1.0, 0.9), (0.96, 0.8)]):
+        rows = [{"scenario": sc, "noise": "paper", "n_tasks": 100, "success_rate": v, "collision_rate": 1 - v,
+                 "mean_steps": 12.0, "time_to_success_s": 1.2 + seed, "policy_ms_per_step": 3.0,
+                 "perception": perception} for sc, v in (("free", free), ("block", block))]
+        result = {"checkpoint": f"runs/x/seed{seed}", "method": "sac_silp_plus", "seed": seed, "trained_frames": 1,
+                  "trained_episodes": 10_000, "control_dt": 0.1, "max_steps": 50, "rows": rows}
+        (tmp_path / f"sac_silp_plus_seed{seed}.json").write_text(json.dumps(result))
+    text = report.table5_block(report.load_transfer(tmp_path), tmp_path, "cmd")
+    free = next(line for line in text.splitlines() if "| free | paper |" in line)
+    cells = [c.strip() for c in free.strip("|").split("|")]
+    assert cells[3] == f"{np.mean([1.0, 0.96]):.3f} ({np.std([1.0, 0.96]):.3f})"
+    assert cells[5] == f"{np.mean([1.2, 2.2]):.2f} ({np.std([1.2, 2.2]):.2f})" and cells[6] == "2"
+    # the paper: 3 and 4 failures in 50 Free trials, in simulation and on the real robot
+    assert cells[7:] == ["0.94", "0.92"]
+    assert "| block | none |" not in text and "box noise 0.01 m, latency 1 step(s)" in text
+    with pytest.raises(FileNotFoundError, match="transfer"):
+        report.load_transfer(tmp_path / "none")

@@ -1,0 +1,106 @@
+"""A trained policy on the MuJoCo twin of its task: the paper's Table 5 scenarios in simulation.
+
+    python recipes/transfer.py checkpoint=results/paper_budget/sac_silp_plus/seed0 scenario=block noise=paper
+    python recipes/transfer.py checkpoint=RUN_DIR                 # every scenario x noise level
+
+Rebuilds the run's actor from its ``config.yaml`` and checkpoint (the parameters
+it evaluated), draws the scenario's seeded tasks (``torchrl_silp.sim.scenario_tasks``)
+and runs the policy closed-loop on the twin (``torchrl_silp.sim.run_transfer``),
+one MuJoCo world per task. Prints success, collisions and time per task for each
+scenario and noise level and writes them, with the config, to ``out``.
+``run(cfg)`` returns that dict. Configuration: ``recipes/config/transfer.yaml``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+sys.path.insert(0, str(Path(__file__).parent))
+import schema  # noqa: E402
+import utils  # noqa: E402
+
+from torchrl_silp.sim.transfer import NOISE_LEVELS, SCENARIOS, run_transfer, scenario_tasks  # noqa: E402
+
+schema.register()
+
+
+def _choices(name: str, value: str, allowed: tuple) -> list[str]:
+    if value == "all":
+        return list(allowed)
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed} or 'all', got {value!r}")
+    return [value]
+
+
+def run(cfg: DictConfig) -> dict:
+    """Every scenario x noise level of ``cfg`` for the run at ``cfg.checkpoint``; returns the results dict."""
+    scenarios = _choices("scenario", cfg.scenario, SCENARIOS)
+    noises = _choices("noise", cfg.noise, tuple(NOISE_LEVELS))
+    for name, value, low in (("n_tasks", cfg.n_tasks, 1), ("seed", cfg.seed, 0), ("threads", cfg.threads, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+    run_dir = Path(cfg.checkpoint)
+    if not (run_dir / "config.yaml").exists():
+        raise FileNotFoundError(f"checkpoint: {run_dir} holds no config.yaml (give a training run's directory)")
+    utils.check_device(cfg.device)
+    device = torch.device(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    train_cfg = OmegaConf.load(run_dir / "config.yaml")
+    model = utils.make_model(train_cfg, device)
+    env = utils.make_env(train_cfg, model, device, seed=0)
+    actor, _, state = utils.load_trained_networks(train_cfg, model, env, run_dir / "checkpoint", device)
+    transform = utils.make_observation_transform(train_cfg, model)
+    max_steps = cfg.max_steps if cfg.max_steps is not None else int(train_cfg.env.max_steps)
+    rows = []
+    print(f"{'scenario':<8} {'noise':<7} {'success':>8} {'collision':>10} {'steps':>6} {'time to success (s)':>20} "
+          f"{'policy ms/step':>15}")
+    for k, scenario in enumerate(scenarios):
+        tasks = scenario_tasks(model, scenario, cfg.n_tasks, seed=cfg.seed + SCENARIOS.index(scenario))
+        for noise in noises:
+            tick = time.perf_counter()
+            out = run_transfer(actor, model, tasks, observation_transform=transform, perception=NOISE_LEVELS[noise],
+                               control_dt=cfg.control_dt, max_steps=max_steps, seed=cfg.seed)
+            ok = out["success"]
+            row = {
+                "scenario": scenario, "noise": noise, "n_tasks": len(tasks),
+                "success_rate": ok.float().mean().item(), "collision_rate": out["collision"].float().mean().item(),
+                "mean_steps": out["steps"].float().mean().item(),
+                "time_to_success_s": out["time_s"][ok].mean().item() if ok.any() else None,
+                "policy_ms_per_step": out["policy_ms_per_step"], "wall_s": time.perf_counter() - tick,
+                "perception": vars(NOISE_LEVELS[noise]) | {},
+            }
+            rows.append(row)
+            to_success = "—" if row["time_to_success_s"] is None else f"{row['time_to_success_s']:.2f}"
+            print(f"{scenario:<8} {noise:<7} {row['success_rate']:>8.3f} {row['collision_rate']:>10.3f} "
+                  f"{row['mean_steps']:>6.1f} {to_success:>20} {row['policy_ms_per_step']:>15.3f}")
+    # the run's method: its summary's name (a sweep's row name) when it has finished, else its exp_name
+    summary = run_dir / "summary.json"
+    method = json.loads(summary.read_text())["method"] if summary.exists() else str(train_cfg.logger.exp_name)
+    result = {
+        "checkpoint": str(run_dir), "method": method, "seed": int(train_cfg.seed),
+        "trained_frames": state["counters"]["frames"], "trained_episodes": state["counters"]["episodes"],
+        "control_dt": cfg.control_dt, "max_steps": max_steps, "task_seed": cfg.seed, "rows": rows,
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
+    out_path = Path(cfg.out) if cfg.out else Path("results/transfer") / f"{result['method']}_seed{result['seed']}.json"
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out_path}")
+    return result
+
+
+@hydra.main(version_base="1.3", config_path="config", config_name="transfer")
+def main(cfg):
+    return run(cfg)
+
+
+if __name__ == "__main__":
+    main()
