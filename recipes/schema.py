@@ -51,6 +51,8 @@ class PlannerConfig:
     goal_node: bool = True
     own_query: bool = True
     insert_nodes: str = "equal"
+    collision_net: Optional[str] = None
+    collision_threshold: float = 0.5
 
 
 @dataclass

@@ -33,6 +33,7 @@ from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
+from torchrl_silp.models.learned_collision import load_collision_net, with_learned_edges
 from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ, ReLU
 
 EXPLORATION_MODES = ("gp", "random", "none")
@@ -240,6 +241,9 @@ def make_buffers(cfg, model, device) -> MixedReplay:
         "insert_nodes": cfg.planner.insert_nodes,
     }
     keys = observation_keys(cfg)
+    if cfg.planner.collision_net is not None:  # the paper's planner: edges checked by the learned model
+        net = load_collision_net(cfg.planner.collision_net).to(device)
+        model = with_learned_edges(model, net, cfg.planner.collision_threshold)
     demos = DemoReplayBuffer(
         model, capacity=cfg.replay_buffer.demo_size, device=device, planner_kwargs=planner,
         observation_transform=make_observation_transform(cfg, model), observation_keys=keys,

@@ -192,3 +192,16 @@ def test_transfer_recipe_runs_a_checkpoint_and_writes_its_results(still_run, tmp
         transfer.run(compose("transfer", [f"checkpoint={still_run}", "scenario=nope"]))
     with pytest.raises(FileNotFoundError, match="checkpoint"):
         transfer.run(compose("transfer", [f"checkpoint={tmp_path}"]))
+
+
+def test_mujoco_labels_are_the_twins_contacts_and_within_the_exact_checks(model):
+    from torchrl_silp.models.learned_collision import collision_dataset
+    from torchrl_silp.sim import mujoco_labels
+
+    _, exact, config, scene = collision_dataset(model, 3000, torch.Generator().manual_seed(0), n_scenes=100)
+    labels = mujoco_labels(model, config, scene, batch=1000)
+    # the task model's sphere cover holds the URDF's primitives: what MuJoCo finds, the exact check finds too
+    assert not (labels & ~exact).any() and labels.any() and (exact & ~labels).any()
+    twin = MujocoTwin(model, n_envs=7)
+    twin.reset(config[:7], scene["obstacle"][:7])
+    assert torch.equal(twin.colliding(), labels[:7])

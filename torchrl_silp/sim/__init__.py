@@ -1,3 +1,7 @@
-from torchrl_silp.sim.twin import MujocoTwin, ServoGains
+"""Transfer to physics: the MuJoCo twin of a reach task and closed-loop execution of a policy on it (extra ``sim``)."""
 
-__all__ = ["MujocoTwin", "ServoGains"]
+from torchrl_silp.sim.transfer import NOISE_LEVELS, SCENARIOS, Perception, run_transfer, scenario_tasks
+from torchrl_silp.sim.twin import MujocoTwin, ServoGains, mujoco_labels
+
+__all__ = ["MujocoTwin", "ServoGains", "mujoco_labels", "Perception", "NOISE_LEVELS", "SCENARIOS", "scenario_tasks",
+           "run_transfer"]

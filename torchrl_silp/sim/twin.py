@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["MujocoTwin", "ServoGains"]
+__all__ = ["MujocoTwin", "ServoGains", "mujoco_labels"]
 
 
 @dataclass(frozen=True)
@@ -232,3 +232,23 @@ class MujocoTwin:
         if x.dim() != 2 or x.shape[0] != self.n_envs:
             raise ValueError(f"{name} must have shape [n_envs={self.n_envs}, ...], got {tuple(x.shape)}")
         return x
+
+
+def mujoco_labels(model, config: torch.Tensor, scene, batch: int = 4096) -> torch.Tensor:
+    """Whether MuJoCo finds a collision contact at each configuration in its scene: bool ``config.shape[:-1]``.
+
+    The labeller of :func:`~torchrl_silp.models.learned_collision.collision_dataset` by the twin's own
+    primitives (the URDF's cylinders and boxes, not the task model's sphere cover, and no workspace bound).
+    """
+    flat = config.reshape(-1, config.shape[-1])
+    obstacle = scene["obstacle"].reshape(len(flat), -1)
+    twin = MujocoTwin(model, n_envs=min(batch, len(flat)))
+    out = torch.zeros(len(flat), dtype=torch.bool)
+    for lo in range(0, len(flat), twin.n_envs):
+        q, box = flat[lo: lo + twin.n_envs], obstacle[lo: lo + twin.n_envs]
+        pad = twin.n_envs - len(q)
+        if pad:  # the last batch: repeat its first row to the twin's size
+            q, box = torch.cat([q, q[:1].expand(pad, -1)]), torch.cat([box, box[:1].expand(pad, -1)])
+        twin.reset(q, box)
+        out[lo: lo + twin.n_envs - pad] = twin.colliding()[: twin.n_envs - pad]
+    return out.reshape(config.shape[:-1])
