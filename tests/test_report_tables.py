@@ -121,3 +121,17 @@ def test_table5_means_over_seeds_beside_the_papers_scenarios(tmp_path):
     assert "| block | none |" not in text and "box noise 0.01 m, latency 1 step(s)" in text
     with pytest.raises(FileNotFoundError, match="transfer"):
         report.load_transfer(tmp_path / "none")
+
+
+def test_collision_net_block_sets_each_labeller_beside_the_paper(tmp_path):
+    for labeller, acc in (("exact", 0.97), ("mujoco", 0.99)):
+        net = {"labeller": labeller, "n": 1000, "collision_share": 0.5, "command": f"python x --labeller {labeller}",
+               "metrics": {"accuracy": acc, "recall": 0.9, "precision": 0.8, "specificity": 0.7},
+               "roc": {"fpr": [1.0, 0.2, 0.0], "tpr": [1.0, 0.9, 0.0], "auc": 0.95}}
+        (tmp_path / f"{labeller}.json").write_text(json.dumps(net))
+    png = tmp_path / "roc.png"
+    text = report.collision_net_block(report.load_collision_nets(tmp_path), tmp_path, png, tmp_path / "r.md", "cmd")
+    rows = [line for line in text.splitlines() if line.startswith("| ")][1:]  # past the header
+    assert rows[0].startswith("| the paper's (appendix B) | 485,000 | — | 0.991 | 0.984 | 0.989 | 0.995 |")
+    assert rows[1] == "| exact | 1,000 | 0.500 | 0.970 | 0.900 | 0.800 | 0.700 | 0.9500 |"
+    assert rows[2].startswith("| mujoco | 1,000 | 0.500 | 0.990 |") and png.stat().st_size > 0
