@@ -2,6 +2,7 @@
 
     python recipes/transfer.py checkpoint=results/paper_budget/sac_silp_plus/seed0 scenario=block noise=paper
     python recipes/transfer.py checkpoint=RUN_DIR                 # every scenario x noise level
+    python recipes/transfer.py checkpoint=RUN_DIR scenario=pick_place   # the pick-and-place pipeline (Fig. 9)
 
 Rebuilds the run's actor from its ``config.yaml`` and checkpoint (the parameters
 it evaluated), draws the scenario's seeded tasks (``torchrl_silp.sim.scenario_tasks``)
@@ -26,7 +27,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 import schema  # noqa: E402
 import utils  # noqa: E402
 
+from torchrl_silp.sim.pick_place import STAGES, pick_place_tasks, run_pick_place  # noqa: E402
 from torchrl_silp.sim.transfer import NOISE_LEVELS, SCENARIOS, run_transfer, scenario_tasks  # noqa: E402
+
+PICK_PLACE = "pick_place"
 
 schema.register()
 
@@ -41,7 +45,7 @@ def _choices(name: str, value: str, allowed: tuple) -> list[str]:
 
 def run(cfg: DictConfig) -> dict:
     """Every scenario x noise level of ``cfg`` for the run at ``cfg.checkpoint``; returns the results dict."""
-    scenarios = _choices("scenario", cfg.scenario, SCENARIOS)
+    scenarios = _choices("scenario", cfg.scenario, (*SCENARIOS, PICK_PLACE))
     noises = _choices("noise", cfg.noise, tuple(NOISE_LEVELS))
     for name, value, low in (("n_tasks", cfg.n_tasks, 1), ("seed", cfg.seed, 0), ("threads", cfg.threads, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
@@ -62,7 +66,10 @@ def run(cfg: DictConfig) -> dict:
     rows = []
     print(f"{'scenario':<8} {'noise':<7} {'success':>8} {'collision':>10} {'steps':>6} {'time to success (s)':>20} "
           f"{'policy ms/step':>15}")
-    for k, scenario in enumerate(scenarios):
+    for scenario in scenarios:
+        if scenario == PICK_PLACE:
+            rows += _pick_place_rows(cfg, model, actor, transform, noises, max_steps)
+            continue
         tasks = scenario_tasks(model, scenario, cfg.n_tasks, seed=cfg.seed + SCENARIOS.index(scenario))
         for noise in noises:
             tick = time.perf_counter()
@@ -75,7 +82,7 @@ def run(cfg: DictConfig) -> dict:
                 "mean_steps": out["steps"].float().mean().item(),
                 "time_to_success_s": out["time_s"][ok].mean().item() if ok.any() else None,
                 "policy_ms_per_step": out["policy_ms_per_step"], "wall_s": time.perf_counter() - tick,
-                "perception": vars(NOISE_LEVELS[noise]) | {},
+                "perception": dict(vars(NOISE_LEVELS[noise])),
             }
             rows.append(row)
             to_success = "—" if row["time_to_success_s"] is None else f"{row['time_to_success_s']:.2f}"
@@ -90,11 +97,31 @@ def run(cfg: DictConfig) -> dict:
         "control_dt": cfg.control_dt, "max_steps": max_steps, "task_seed": cfg.seed, "rows": rows,
         "config": OmegaConf.to_container(cfg, resolve=True),
     }
-    out_path = Path(cfg.out) if cfg.out else Path("results/transfer") / f"{result['method']}_seed{result['seed']}.json"
+    parts = [f"{result['method']}_seed{result['seed']}"] + [v for v in (cfg.scenario, cfg.noise) if v != "all"]
+    out_path = Path(cfg.out) if cfg.out else Path("results/transfer") / ("_".join(parts) + ".json")
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out_path}")
     return result
+
+
+def _pick_place_rows(cfg, model, actor, transform, noises, max_steps) -> list[dict]:
+    """The pick-and-place pipeline's trials at each noise level: the share of trials through each stage."""
+    tasks = pick_place_tasks(model, cfg.n_tasks, seed=cfg.seed + len(SCENARIOS))
+    rows = []
+    for noise in noises:
+        tick = time.perf_counter()
+        out = run_pick_place(actor, model, tasks, observation_transform=transform, perception=NOISE_LEVELS[noise],
+                             control_dt=cfg.control_dt, max_steps=max_steps, seed=cfg.seed)
+        row = {"scenario": PICK_PLACE, "noise": noise, "n_tasks": len(tasks),
+               **{f"{stage}_rate": out[stage].float().mean().item() for stage in STAGES},
+               "success_rate": out["place"].float().mean().item(),
+               "collision_rate": out["collision"].float().mean().item(), "wall_s": time.perf_counter() - tick,
+               "perception": dict(vars(NOISE_LEVELS[noise]))}
+        rows.append(row)
+        print(f"{PICK_PLACE:<10} {noise:<7} " + "  ".join(f"{s} {row[s + '_rate']:.3f}" for s in STAGES)
+              + f"  collision {row['collision_rate']:.3f}")
+    return rows
 
 
 @hydra.main(version_base="1.3", config_path="config", config_name="transfer")

@@ -98,30 +98,16 @@ def test_settings_name_each_addition_a_run_had_on():
         "ours: +goal-relative input, +averaged actor; ours: +goal-relative input")
 
 
-@pytest.mark.parametrize("name", ["table1_40k", "tasks", "speed", "table5"])
+@pytest.mark.parametrize("name", report.BLOCKS)
 def test_the_page_blocks_regenerate_from_the_committed_results(name, tmp_path, monkeypatch):
     """docs/results.md's generated blocks are what recipes/report.py makes of results/ (byte for byte)."""
     root = Path(__file__).resolve().parents[1]
     monkeypatch.chdir(root)  # the paths in the blocks are the CLI's, relative to the repository root
     page = Path("docs/results.md").read_text()
+    begin, end = report.markers(name)
+    assert page.count(begin) == 1 and page.count(end) == 1, f"docs/results.md holds the {name} block once"
     command = "python recipes/report.py" + ("" if name == "table1" else f" --block {name}")
-    if name == "table5":
-        assert report.table5_block(report.load_transfer(Path("results/transfer")), Path("results/transfer"),
-                                   command) in page
-        return
-    if name.startswith("table1"):  # the Table 1 blocks, at the paper's budget and the earlier 40k frames
-        runs = report.load_results(Path(f"results/{name}"))
-        plotted = report.plot_curves(runs, tmp_path / "curves.png")
-        text = report.block(runs, Path(f"results/{name}"), Path(f"docs/{name}_curves.png"), Path("docs/results.md"),
-                            command, plotted, name)
-        assert text in page
-        return
-    if name == "speed":
-        text = report.speed_block(Path("results/benchmarks"), command)
-    else:
-        runs = report.load_results(Path(f"results/{name}"))
-        plotted = report.plot_curves(runs, tmp_path / "curves.png")  # the committed picture is left alone
-        make = report.block if name == "table1" else report.tasks_block
-        text = make(runs, Path(f"results/{name}"), Path(f"docs/{name}_curves.png"), Path("docs/results.md"),
-                    command, plotted)
+    results = Path(report.RESULTS_OF.get(name, f"results/{name}"))
+    text = report.render(name, results, Path(f"docs/{name}_curves.png"), Path("docs/results.md"), command,
+                         plot_to=tmp_path / "figure.png")  # the committed picture is left alone
     assert text in page

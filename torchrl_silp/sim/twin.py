@@ -127,6 +127,7 @@ class MujocoTwin:
             for b in with_geoms[i + 1:]:
                 if frozenset((a, b)) not in self.self_collision_links:
                     spec.add_exclude(bodyname1=a, bodyname2=b)
+        self._extend_spec(spec, mujoco)
         self.mj_model = spec.compile()
         self.data = [mujoco.MjData(self.mj_model) for _ in range(n_envs)]
         m = self.mj_model
@@ -138,6 +139,13 @@ class MujocoTwin:
         self._robot_bodies = {m.geom_bodyid[g] for g in self._robot_geoms}
         self._qadr = np.asarray([m.jnt_qposadr[m.joint(n).id] for n in self.joint_names])
         self._sensor_adr = np.asarray([m.sensor_adr[m.sensor(f"q_{n}").id] for n in self.joint_names])
+        self._after_compile()
+
+    def _extend_spec(self, spec, mujoco) -> None:
+        """Add bodies to the spec before it compiles (a subclass's objects); nothing here."""
+
+    def _after_compile(self) -> None:
+        """Read what a subclass added from the compiled model; nothing here."""
 
     @staticmethod
     def _self_collision_links(model) -> set[frozenset]:
@@ -209,13 +217,16 @@ class MujocoTwin:
                 continue
             for _ in range(substeps):
                 self.mujoco.mj_step(self.mj_model, d)
-                if d.ncon and self._colliding(d):
+                if d.ncon and self._colliding_world(i, d):
                     collided[i] = True
         return torch.from_numpy(collided)
 
     def colliding(self) -> torch.Tensor:
         """bool ``[n_envs]``: a collision contact now (after :meth:`reset` or :meth:`step`)."""
         return torch.tensor([bool(d.ncon) and self._colliding(d) for d in self.data])
+
+    def _colliding_world(self, i: int, d) -> bool:
+        return self._colliding(d)
 
     def _colliding(self, d) -> bool:
         for c in d.contact[: d.ncon]:
