@@ -219,5 +219,6 @@ class TransferConfig:
     control_dt: float = 0.1
     max_steps: Optional[int] = None
     out: Optional[str] = None
+    pictures: Optional[str] = None
     device: str = "cpu"
     threads: int = 1

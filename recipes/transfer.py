@@ -91,6 +91,8 @@ def run(cfg: DictConfig) -> dict:
     # the run's method: its summary's name (a sweep's row name) when it has finished, else its exp_name
     summary = run_dir / "summary.json"
     method = json.loads(summary.read_text())["method"] if summary.exists() else str(train_cfg.logger.exp_name)
+    if cfg.pictures:
+        _pictures(cfg, model, actor, transform, max_steps)
     result = {
         "checkpoint": str(run_dir), "method": method, "seed": int(train_cfg.seed),
         "trained_frames": state["counters"]["frames"], "trained_episodes": state["counters"]["episodes"],
@@ -103,6 +105,35 @@ def run(cfg: DictConfig) -> dict:
     out_path.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out_path}")
     return result
+
+
+def _pictures(cfg, model, actor, transform, max_steps) -> None:
+    """Frames of the first task of each scenario and of the first pick-and-place trial (no noise), one row each."""
+    from torchrl_silp.sim.render import FrameRecorder, save_strip
+
+    import mujoco
+
+    try:
+        mujoco.Renderer(mujoco.MjModel.from_xml_string("<mujoco/>"), 8, 8).close()
+    except mujoco.FatalError as err:
+        raise RuntimeError("pictures: MuJoCo has no OpenGL context here; on a headless machine run with "
+                           "MUJOCO_GL=egl (or osmesa) in the environment") from err
+    rows = []
+    for scenario in SCENARIOS:
+        task = scenario_tasks(model, scenario, cfg.n_tasks, seed=cfg.seed + SCENARIOS.index(scenario))[:1]
+        recorder = FrameRecorder()
+        out = run_transfer(actor, model, task, observation_transform=transform, control_dt=cfg.control_dt,
+                           max_steps=max_steps, on_step=recorder)
+        verdict = "success" if out["success"].item() else "collision" if out["collision"].item() else "time-out"
+        rows.append((f"{scenario}: {verdict}", recorder.frames))
+    trial = pick_place_tasks(model, cfg.n_tasks, seed=cfg.seed + len(SCENARIOS))[:1]
+    recorder = FrameRecorder()
+    out = run_pick_place(actor, model, trial, observation_transform=transform, control_dt=cfg.control_dt,
+                         max_steps=max_steps, on_step=recorder)
+    rows.append((f"pick-and-place: {'placed' if out['place'].item() else 'failed'}", recorder.frames))
+    Path(cfg.pictures).parent.mkdir(parents=True, exist_ok=True)
+    save_strip(rows, cfg.pictures)
+    print(f"wrote {cfg.pictures}")
 
 
 def _pick_place_rows(cfg, model, actor, transform, noises, max_steps) -> list[dict]:

@@ -184,9 +184,10 @@ def pick_place_tasks(model, n: int, seed: int) -> TensorDict:
 
 def run_pick_place(policy, model, tasks: TensorDict, *, observation_transform=None,
                    perception: Perception = Perception(), control_dt: float = 0.1, max_steps: int = 50,
-                   seed: int = 0) -> dict:
+                   seed: int = 0, on_step=None) -> dict:
     """Run the pipeline on every trial in lockstep; returns per-trial bool tensors, one per stage in
-    :data:`STAGES` (each requires the ones before it), and ``collision`` (a contact ended the trial)."""
+    :data:`STAGES` (each requires the ones before it), and ``collision`` (a contact ended the trial).
+    ``on_step(twin, k)``, if given, is called after each control step and scripted move."""
     if not isinstance(perception, Perception):
         raise TypeError(f"perception must be a Perception, got {type(perception).__name__}")
     n = len(tasks)
@@ -204,6 +205,12 @@ def run_pick_place(policy, model, tasks: TensorDict, *, observation_transform=No
     box_seen = tasks["obstacle"].to(dtype) + noise((n, 3)).repeat_interleave(2, -1)
     scene = TensorDict({"obstacle": box_seen}, batch_size=[n])
     collision = torch.zeros(n, dtype=torch.bool)
+    count = [0]
+
+    def tick() -> None:
+        count[0] += 1
+        if on_step is not None:
+            on_step(twin, count[0])
 
     def reach(goal: torch.Tensor, alive: torch.Tensor) -> torch.Tensor:
         """The policy drives the TCP to ``goal``; True where it got within the model's success distance."""
@@ -222,6 +229,7 @@ def run_pick_place(policy, model, tasks: TensorDict, *, observation_transform=No
                 twin.set_targets(q + (c + 1) / 10 * (target - q))
                 collision |= twin.step(substeps // 10, active) & active
             done |= ((twin.tcp().to(dtype) - goal).norm(dim=-1) <= model.success_distance) & active & ~collision
+            tick()
         return done & ~collision
 
     def straight(goal: torch.Tensor, alive: torch.Tensor, steps: int = 10) -> None:
@@ -232,6 +240,7 @@ def run_pick_place(policy, model, tasks: TensorDict, *, observation_transform=No
         for k in range(steps):
             twin.set_targets(q0 + (k + 1) / steps * (q1 - q0))
             collision |= twin.step(substeps, alive & ~collision) & alive
+            tick()
         collision |= twin.step(3 * substeps, alive & ~collision) & alive  # settle
 
     up = torch.tensor([0.0, 0.0, ABOVE], dtype=dtype)
@@ -246,7 +255,9 @@ def run_pick_place(policy, model, tasks: TensorDict, *, observation_transform=No
     grasp = grasping & ~collision & (twin.cube()[:, 2].to(dtype) > CUBE / 2 + 0.05)
     carry = reach(basket_seen + up + torch.tensor([0.0, 0.0, CUBE / 2], dtype=dtype), grasp)
     twin.release(carry)
-    collision |= twin.step(int(1.0 / twin.mj_model.opt.timestep), carry & ~collision) & carry
+    for _ in range(5):  # 1 s for the cube to fall and settle
+        collision |= twin.step(int(0.2 / twin.mj_model.opt.timestep), carry & ~collision) & carry
+        tick()
     inside = ((twin.cube()[:, :2] - tasks["basket"][:, :2].double()).abs() < torch.tensor(BASKET[:2]).double() / 2).all(-1)
     resting = (twin.cube()[:, 2] < BASKET[2]) & (twin.cube_speed() < 0.05)
     place = carry & ~collision & inside & resting

@@ -146,7 +146,7 @@ def _box_at(tasks: TensorDict, t: float) -> torch.Tensor:
 
 def run_transfer(policy, model, tasks: TensorDict, *, observation_transform=None,
                  perception: Perception = Perception(), control_dt: float = 0.1, max_steps: int = 50,
-                 twin: MujocoTwin | None = None, seed: int = 0, updates_per_step: int = 10) -> dict:
+                 twin: MujocoTwin | None = None, seed: int = 0, updates_per_step: int = 10, on_step=None) -> dict:
     """Run ``policy`` closed-loop on the twin, one world per task, all tasks in lockstep.
 
     Each control step: read the encoders (plus noise), perceive the box (its pose
@@ -162,7 +162,8 @@ def run_transfer(policy, model, tasks: TensorDict, *, observation_transform=None
     Returns a dict of per-task tensors (``success``, ``collision``, ``steps``, ``time_s``: simulated
     seconds to success or to the end, ``box_track``: MuJoCo's box centres ``[steps + 1, n, boxes, 3]``
     at the start and after each control step) and ``policy_ms_per_step`` (wall time of one batched
-    policy call).
+    policy call). ``on_step(twin, k)``, if given, is called at the start and after each control step
+    (e.g. to render frames).
     """
     if not isinstance(perception, Perception):
         raise TypeError(f"perception must be a Perception, got {type(perception).__name__}")
@@ -189,6 +190,8 @@ def run_transfer(policy, model, tasks: TensorDict, *, observation_transform=None
     steps = torch.zeros(n, dtype=torch.long)
     seen = [_box_at(tasks, 0.0)] * (perception.latency_steps + 1)  # the true poses of the last steps
     track = [twin.obstacle_centres()]
+    if on_step is not None:
+        on_step(twin, 0)
     policy_s = 0.0
     for k in range(max_steps):
         active = ~(success | collision)
@@ -220,6 +223,8 @@ def run_transfer(policy, model, tasks: TensorDict, *, observation_transform=None
         reached = (twin.tcp().to(dtype) - goal).norm(dim=-1) <= model.success_distance
         success |= reached & active & ~collision
         track.append(twin.obstacle_centres())
+        if on_step is not None:
+            on_step(twin, k + 1)
     return {
         "success": success, "collision": collision, "steps": steps, "time_s": steps.double() * control_dt,
         "box_track": torch.stack(track), "policy_ms_per_step": 1e3 * policy_s / max(int(steps.max()), 1),

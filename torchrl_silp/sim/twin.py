@@ -113,10 +113,13 @@ class MujocoTwin:
         if tcp_body is None:
             raise ValueError(f"urdf_path: {robot.urdf_path!r} has no 'tcp' link")
         tcp_body.add_site(name="tcp")
-        spec.worldbody.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.1])
+        spec.worldbody.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.1],
+                                rgba=[0.85, 0.85, 0.8, 1.0])
+        spec.worldbody.add_light(pos=[0.4, 0.2, 2.5], dir=[0.0, 0.0, -1.0], diffuse=[0.7, 0.7, 0.7])  # for pictures
         for k in range(self.num_boxes):
             box = spec.worldbody.add_body(name=f"box{k}", mocap=True, pos=[2.0 + k, 2.0, -1.0])
-            box.add_geom(name=f"box{k}", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(self.box_half))
+            box.add_geom(name=f"box{k}", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(self.box_half),
+                         rgba=[0.8, 0.55, 0.3, 1.0])  # cardboard
         base = arm_bodies[0].name
         spec.add_exclude(bodyname1="world", bodyname2=base)  # the base stands on the table
         # self-collision: only the link pairs the task model tests (the UR5e's gripper against the base,
