@@ -211,7 +211,8 @@ class BCConfig:
 class TransferConfig:
     """A trained policy on the MuJoCo twin (``recipes/transfer.py``); every field is documented in ``config/transfer.yaml``."""
 
-    checkpoint: str = "???"
+    checkpoint: Optional[str] = None
+    prm_budget_s: Optional[float] = None
     scenario: str = "all"
     noise: str = "all"
     n_tasks: int = 100

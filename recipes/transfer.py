@@ -28,6 +28,7 @@ import schema  # noqa: E402
 import utils  # noqa: E402
 
 from torchrl_silp.sim.pick_place import STAGES, pick_place_tasks, run_pick_place  # noqa: E402
+from torchrl_silp.sim.replan import ReplanningPRMPolicy  # noqa: E402
 from torchrl_silp.sim.transfer import NOISE_LEVELS, SCENARIOS, run_transfer, scenario_tasks  # noqa: E402
 
 PICK_PLACE = "pick_place"
@@ -50,30 +51,47 @@ def run(cfg: DictConfig) -> dict:
     for name, value, low in (("n_tasks", cfg.n_tasks, 1), ("seed", cfg.seed, 0), ("threads", cfg.threads, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
-    run_dir = Path(cfg.checkpoint)
-    if not (run_dir / "config.yaml").exists():
-        raise FileNotFoundError(f"checkpoint: {run_dir} holds no config.yaml (give a training run's directory)")
+    if (cfg.checkpoint is None) == (cfg.prm_budget_s is None):
+        raise ValueError("give one of checkpoint (a trained policy) and prm_budget_s (OMPL's PRM, replanned each "
+                         f"control step), got checkpoint={cfg.checkpoint!r}, prm_budget_s={cfg.prm_budget_s!r}")
     utils.check_device(cfg.device)
     device = torch.device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    train_cfg = OmegaConf.load(run_dir / "config.yaml")
-    model = utils.make_model(train_cfg, device)
-    env = utils.make_env(train_cfg, model, device, seed=0)
-    actor, _, state = utils.load_trained_networks(train_cfg, model, env, run_dir / "checkpoint", device)
-    transform = utils.make_observation_transform(train_cfg, model)
+    if cfg.prm_budget_s is not None:  # the planner needs no checkpoint: the default config's task
+        if not (isinstance(cfg.prm_budget_s, (int, float)) and cfg.prm_budget_s > 0):
+            raise ValueError(f"prm_budget_s must be a positive number of seconds, got {cfg.prm_budget_s!r}")
+        run_dir = None
+        train_cfg = OmegaConf.create({"env": OmegaConf.load(Path(__file__).parent / "config" / "env" / "ur5e_reach.yaml"),
+                                      "logger": {"exp_name": f"prm_{cfg.prm_budget_s:g}_replanned"}, "seed": cfg.seed})
+        model = utils.make_model(train_cfg, device)
+        actor, transform, state = None, None, {"counters": {"frames": 0, "episodes": 0}}
+    else:
+        run_dir = Path(cfg.checkpoint)
+        if not (run_dir / "config.yaml").exists():
+            raise FileNotFoundError(f"checkpoint: {run_dir} holds no config.yaml (give a training run's directory)")
+        train_cfg = OmegaConf.load(run_dir / "config.yaml")
+        model = utils.make_model(train_cfg, device)
+        env = utils.make_env(train_cfg, model, device, seed=0)
+        actor, _, state = utils.load_trained_networks(train_cfg, model, env, run_dir / "checkpoint", device)
+        transform = utils.make_observation_transform(train_cfg, model)
     max_steps = cfg.max_steps if cfg.max_steps is not None else int(train_cfg.env.max_steps)
     rows = []
     print(f"{'scenario':<8} {'noise':<7} {'success':>8} {'collision':>10} {'steps':>6} {'time to success (s)':>20} "
           f"{'policy ms/step':>15}")
     for scenario in scenarios:
         if scenario == PICK_PLACE:
+            if actor is None:  # the pipeline asks its policy for goal positions, the planner needs configurations
+                print("pick_place: skipped for the PRM planner")
+                continue
             rows += _pick_place_rows(cfg, model, actor, transform, noises, max_steps)
             continue
         tasks = scenario_tasks(model, scenario, cfg.n_tasks, seed=cfg.seed + SCENARIOS.index(scenario))
         for noise in noises:
             tick = time.perf_counter()
-            out = run_transfer(actor, model, tasks, observation_transform=transform, perception=NOISE_LEVELS[noise],
+            policy = actor if actor is not None else ReplanningPRMPolicy(model, tasks["goal_joint_position"],
+                                                                         cfg.prm_budget_s, seed=cfg.seed)
+            out = run_transfer(policy, model, tasks, observation_transform=transform, perception=NOISE_LEVELS[noise],
                                control_dt=cfg.control_dt, max_steps=max_steps, seed=cfg.seed)
             ok = out["success"]
             row = {
@@ -89,12 +107,14 @@ def run(cfg: DictConfig) -> dict:
             print(f"{scenario:<8} {noise:<7} {row['success_rate']:>8.3f} {row['collision_rate']:>10.3f} "
                   f"{row['mean_steps']:>6.1f} {to_success:>20} {row['policy_ms_per_step']:>15.3f}")
     # the run's method: its summary's name (a sweep's row name) when it has finished, else its exp_name
-    summary = run_dir / "summary.json"
-    method = json.loads(summary.read_text())["method"] if summary.exists() else str(train_cfg.logger.exp_name)
+    summary = None if run_dir is None else run_dir / "summary.json"
+    method = json.loads(summary.read_text())["method"] if summary and summary.exists() else str(train_cfg.logger.exp_name)
     if cfg.pictures:
+        if actor is None:
+            raise ValueError("pictures: draws a trained policy; give checkpoint, not prm_budget_s")
         _pictures(cfg, model, actor, transform, max_steps)
     result = {
-        "checkpoint": str(run_dir), "method": method, "seed": int(train_cfg.seed),
+        "checkpoint": None if run_dir is None else str(run_dir), "method": method, "seed": int(train_cfg.seed),
         "trained_frames": state["counters"]["frames"], "trained_episodes": state["counters"]["episodes"],
         "control_dt": cfg.control_dt, "max_steps": max_steps, "task_seed": cfg.seed, "rows": rows,
         "config": OmegaConf.to_container(cfg, resolve=True),

@@ -243,3 +243,20 @@ def test_pick_and_place_stages_with_an_oracle_policy(model):
     for before, after in zip(STAGES, STAGES[1:]):
         assert not (off[after] & ~off[before]).any()
     assert BASKET == (0.15, 0.15, 0.10)  # the paper's basket
+
+
+def test_replanning_prm_reaches_free_goals_and_the_recipe_takes_one_policy(model, still_run):
+    pytest.importorskip("ompl")
+    from torchrl_silp.sim.replan import ReplanningPRMPolicy
+
+    tasks = scenario_tasks(model, "free", 3, seed=11)
+    policy = ReplanningPRMPolicy(model, tasks["goal_joint_position"], budget_s=0.1, seed=0)
+    out = run_transfer(policy, model, tasks, control_dt=0.1, max_steps=30)
+    assert out["success"].sum() >= 2 and policy.plans >= 3
+    sys.path.insert(0, str(RECIPES))
+    import transfer
+
+    with pytest.raises(ValueError, match="one of checkpoint .* and prm_budget_s"):
+        transfer.run(compose("transfer", [f"checkpoint={still_run}", "prm_budget_s=0.1"]))
+    with pytest.raises(ValueError, match="one of checkpoint .* and prm_budget_s"):
+        transfer.run(compose("transfer", []))
