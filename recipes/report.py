@@ -158,8 +158,14 @@ def settings_text(runs: list[dict]) -> str:
     return "; ".join(texts) or "—"
 
 
+OTHER_LABELS = {  # rows outside the paper's Table 1 names
+    "ur5e_sac_silp_plus_ext": "SAC-SILP+ extended (ours; the main job, 160k frames)",
+    "prm_0.1_replanned": "PRM-0.1, replanned every control step",
+}
+
+
 def label(method: str) -> str:
-    return PAPER_TABLE1.get(method, {}).get("label", method)
+    return PAPER_TABLE1.get(method, {}).get("label", OTHER_LABELS.get(method, method))
 
 
 # ----------------------------------------------------------------- loading
