@@ -389,6 +389,18 @@ def mean_std_curve(histories: list[list[dict]]) -> tuple[np.ndarray, np.ndarray,
     return grid, ys.mean(0), ys.std(0)
 
 
+def _save_figure(fig, ax, path: Path, legend: str) -> None:
+    """The report's figures all end alike: grid, legend, tight layout, saved at 120 dpi, closed."""
+    import matplotlib.pyplot as plt
+
+    ax.grid(alpha=0.3)
+    ax.legend(loc=legend, fontsize="small")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def plot_curves(runs: dict[str, list[dict]], path: Path) -> list[str]:
     """The learning-curve PNG; returns the methods it plots (those with a history), none: no PNG."""
     import matplotlib
@@ -413,12 +425,7 @@ def plot_curves(runs: dict[str, list[dict]], path: Path) -> list[str]:
     # the paper's x axis: epochs of 10 episodes
     ax.secondary_xaxis("top", functions=(lambda e: e / 10, lambda p: p * 10)).set_xlabel("paper's epochs (10 episodes)")
     ax.set_title("Success rates during training: mean ± std over seeds")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize="small")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save_figure(fig, ax, path, "lower right")
     return list(curves)
 
 
@@ -686,16 +693,13 @@ def filter_share_figure(runs: dict[str, list[dict]], path: Path) -> list[str]:
         (line,) = ax.plot(x, mean, label=f"{text} ({len(histories)} seed{'s' if len(histories) > 1 else ''})")
         ax.fill_between(x, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=line.get_color(), alpha=0.2)
         plotted.append(method)
-    if plotted:
-        ax.set_xlabel("training episodes")
-        ax.set_ylabel("share of demo actions the filter keeps")
-        ax.set_ylim(0, 1.02)
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper right", fontsize="small")
-        fig.tight_layout()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=120)
-    plt.close(fig)
+    if not plotted:
+        plt.close(fig)
+        return plotted
+    ax.set_xlabel("training episodes")
+    ax.set_ylabel("share of demo actions the filter keeps")
+    ax.set_ylim(0, 1.02)
+    _save_figure(fig, ax, path, "upper right")
     return plotted
 
 
@@ -883,12 +887,7 @@ def roc_figure(nets: list[dict], path: Path) -> None:
     ax.set_xlabel("false positive rate (1 - specificity)")
     ax.set_ylabel("true positive rate (recall)")
     ax.set_title("ROC of the collision model on its test split")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize="small")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save_figure(fig, ax, path, "lower right")
 
 
 def collision_net_block(nets: list[dict], results: Path, figure: Path | None, out: Path, command: str,

@@ -12,7 +12,6 @@ model. Success means the cube rests inside the basket.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import torch
