@@ -539,6 +539,13 @@ def block(runs: dict[str, list[dict]], results: Path, figure: Path | None, out: 
         "(`docs/paper_vs_ours.md`). The paper's figures beside an extended row are those of its own method.",
         "",
     ]
+    gaps = [f"{label(m + '_ext')} − {label(m)}: {_success(runs, m + '_ext') - _success(runs, m):+.3f} success rate "
+            f"({len(runs[m + '_ext'])} and {len(runs[m])} seeds)"
+            for m in ("sac_silp_plus", "ddpg_silp_plus", "bc_sac_silp_plus")
+            if _success(runs, m) is not None and _success(runs, m + "_ext") is not None]
+    if gaps:
+        lines += ["Ours against the paper's SILP+ (means over seeds; section 2's ablations say which addition "
+                  "accounts for it):", "", *[f"- {g}" for g in gaps], ""]
     notes = seed_notes(runs, every_row)
     if notes:
         lines += [f"Rows with fewer than {PAPER_SEEDS} seeds:", "", *notes, ""]

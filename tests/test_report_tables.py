@@ -135,3 +135,12 @@ def test_collision_net_block_sets_each_labeller_beside_the_paper(tmp_path):
     assert rows[0].startswith("| the paper's (appendix B) | 485,000 | — | 0.991 | 0.984 | 0.989 | 0.995 |")
     assert rows[1] == "| exact | 1,000 | 0.500 | 0.970 | 0.900 | 0.800 | 0.700 | 0.9500 |"
     assert rows[2].startswith("| mujoco | 1,000 | 0.500 | 0.990 |") and png.stat().st_size > 0
+
+
+def test_table1_says_how_far_ours_is_from_the_papers_silp(tmp_path):
+    for seed, (paper, ours) in enumerate([(0.90, 0.97), (0.92, 0.99)]):
+        _run(tmp_path, "sac_silp_plus", seed, paper)
+        _run(tmp_path, "sac_silp_plus_ext", seed, ours)
+    runs = report.load_results(tmp_path)
+    text = report.block(runs, tmp_path, None, tmp_path / "r.md", "cmd", [], "table1")
+    assert f"- SAC-SILP+ extended (ours) − SAC-SILP+ (paper's): {0.98 - 0.91:+.3f} success rate (2 and 2 seeds)" in text
