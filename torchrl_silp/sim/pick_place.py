@@ -53,6 +53,7 @@ class PickPlaceTwin(MujocoTwin):
         m = self.mj_model
         self._cube = m.geom("cube").id
         self._basket = {m.geom(f"basket{i}").id for i in range(4)}
+        self._basket_mocap = int(m.body("basket").mocapid[0])
         self._robot_geoms -= {self._cube} | self._basket
         self._cube_qadr = m.jnt_qposadr[m.joint("cube_free").id]
         self._cube_dadr = m.jnt_dofadr[m.joint("cube_free").id]
@@ -70,15 +71,10 @@ class PickPlaceTwin(MujocoTwin):
             d.qpos[self._cube_qadr: self._cube_qadr + 3] = cube[i].double().numpy()
             d.qpos[self._cube_qadr + 3: self._cube_qadr + 7] = [1, 0, 0, 0]
             d.qvel[self._cube_dadr: self._cube_dadr + 6] = 0
-            d.mocap_pos[1] = basket[i].double().numpy()
+            d.mocap_pos[self._basket_mocap] = basket[i].double().numpy()
             d.eq_active[self._grasp] = 0
             self.mujoco.mj_forward(self.mj_model, d)
         self.holding[:] = False
-
-    def set_obstacle(self, obstacle: torch.Tensor) -> None:
-        bounds = self._batch("obstacle", obstacle).double().cpu().numpy().reshape(self.n_envs, self.num_boxes, 3, 2)
-        for i, d in enumerate(self.data):
-            d.mocap_pos[0] = bounds[i, 0].mean(-1)
 
     def grasp(self, which: torch.Tensor) -> None:
         """Switch the weld on in these worlds: it holds the cube's centre at :data:`GRIP` below the TCP

@@ -138,6 +138,7 @@ class MujocoTwin:
         self._tcp_site = m.site("tcp").id
         self._table = m.geom("table").id
         self._boxes = {m.geom(f"box{k}").id for k in range(self.num_boxes)}
+        self._box_mocap = [int(m.body(f"box{k}").mocapid[0]) for k in range(self.num_boxes)]
         self._robot_geoms = {g for g in range(m.ngeom) if g != self._table and g not in self._boxes}
         self._robot_bodies = {m.geom_bodyid[g] for g in self._robot_geoms}
         self._qadr = np.asarray([m.jnt_qposadr[m.joint(n).id] for n in self.joint_names])
@@ -185,11 +186,11 @@ class MujocoTwin:
             raise ValueError(f"obstacle: the twin's boxes have size {tuple(2 * self.box_half)}, got {size.reshape(-1, 3)[0]}")
         centre = bounds.mean(-1)
         for i, d in enumerate(self.data):
-            d.mocap_pos[:] = centre[i]
+            d.mocap_pos[self._box_mocap] = centre[i]
 
     def obstacle_centres(self) -> torch.Tensor:
         """The boxes' centres in MuJoCo ``[n_envs, num_boxes, 3]`` (float64)."""
-        return torch.from_numpy(np.stack([d.mocap_pos.copy() for d in self.data]))
+        return torch.from_numpy(np.stack([d.mocap_pos[self._box_mocap].copy() for d in self.data]))
 
     def joint_positions(self) -> torch.Tensor:
         """The joint encoders (MuJoCo's joint-position sensors) ``[n_envs, joints]``, float64."""
