@@ -266,7 +266,7 @@ def table(runs: dict[str, list[dict]], every_row: bool = True) -> str:
         plan = _values(ours, "rollout_time_per_episode_s")
         plan = _mean_std_with(plan, _seconds_fmt(plan)) if plan else "—"
         episodes, frames = _mean(ours, "episodes"), _mean(ours, "frames")
-        budget = "—" if episodes is None else f"{episodes:,.0f}" + ("" if frames is None else f" ({frames:,.0f})")
+        budget = ("—" if not episodes else f"{episodes:,.0f}" + ("" if frames is None else f" ({frames:,.0f})"))  # PRM, BC: no RL episodes
         rows.append(
             f"| {label(method)} | {settings_text(ours)} | {success} | {_paper(method, 'success', lambda x: f'{x:.3f}')} "
             f"| {train} | {_paper(method, 'train_s', hms)} "
