@@ -133,7 +133,8 @@ def _ik_steps(model, q: torch.Tensor, target: torch.Tensor, iters: int) -> torch
 def pick_place_tasks(model, n: int, seed: int) -> TensorDict:
     """``n`` seeded trials: the arm's start, the box (the model's task distribution), the cube and the basket
     on the table in the workspace, clear of the box and of each other, with the pre-grasp and pre-place
-    TCP poses reachable and collision-free (the model's checks)."""
+    TCP poses reachable and collision-free (the model's checks), and the arm's start touching neither the
+    cube nor the basket (the twin's contacts)."""
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be an int >= 1, got {n!r}")
     gen = torch.Generator().manual_seed(seed)
@@ -163,6 +164,11 @@ def pick_place_tasks(model, n: int, seed: int) -> TensorDict:
             ok &= ~model.collides(q, scene)
             ok &= ((q >= model.config_low) & (q <= model.config_high)).all(-1)
         ok &= ~model.collides(draw["joint_position"], scene)
+        # the arm's start must not touch the cube or the basket either: MuJoCo's contacts, on the twin
+        twin = PickPlaceTwin(model, n_envs=m)
+        twin.reset(draw["joint_position"], draw["obstacle"])
+        twin.place_objects(cube, basket)
+        ok &= ~twin.colliding()
         keep = draw[ok]
         keep.set("cube", cube[ok])
         keep.set("basket", basket[ok])
