@@ -340,9 +340,15 @@ class TaskModel(ABC):
         for lo in range(0, total, _CHUNK):
             e = edge[lo : lo + _CHUNK]
             q = config_from[e] + t[lo : lo + _CHUNK] * delta[e]
-            flags, _ = self.collision_flags(q, scene[e], margin)
-            hit.index_fill_(0, e[flags.squeeze(-1) != 0], True)
+            hit.index_fill_(0, e[self.edge_samples_collide(q, scene[e], margin)], True)
         return ~hit
+
+    def edge_samples_collide(self, config: torch.Tensor, scene: TensorDictBase, margin: dict[str, float]) -> torch.Tensor:
+        """The test :meth:`segment_collision_free` applies to each configuration it samples along a segment:
+        bool ``config.shape[:-1]``. Here the collision test with the motion ``margin``; a learned collision
+        model can stand in for it (:func:`~torchrl_silp.models.learned_collision.with_learned_edges`)."""
+        flags, _ = self.collision_flags(config, scene, margin)
+        return flags.squeeze(-1) != 0
 
     def transition(self, state: TensorDictBase, action: torch.Tensor) -> TensorDict:
         """The kinematic transition f_s: the next state (configuration and achieved goal; scene and goal kept).

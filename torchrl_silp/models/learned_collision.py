@@ -146,28 +146,16 @@ class _LearnedEdges:
     collision_net: CollisionNet
     collision_threshold: float
 
-    def segment_collision_free(self, config_from, config_to, scene, resolution=None) -> torch.Tensor:
-        h = self.motion_resolution if resolution is None else float(resolution)
-        if isinstance(h, bool) or not (math.isfinite(h) and h > 0):
-            raise ValueError(f"resolution must be a positive number of radians, got {resolution!r}")
-        P = config_from.shape[0]
-        if P == 0:
-            return torch.ones(0, dtype=torch.bool, device=config_from.device)
-        delta = config_to - config_from
-        n_seg = torch.ceil(delta.abs().amax(-1).double() / h - 1e-9).clamp(min=1).long()
-        count = n_seg + 1
-        edge = torch.repeat_interleave(torch.arange(P, device=config_from.device), count, output_size=int(count.sum()))
-        k = torch.arange(len(edge), device=edge.device) - (torch.cumsum(count, 0) - count)[edge]
-        q = config_from[edge] + (k.to(delta.dtype) / n_seg[edge].to(delta.dtype)).unsqueeze(-1) * delta[edge]
+    def edge_samples_collide(self, config, scene, margin) -> torch.Tensor:
+        # the net replaces the exact test and its Lipschitz margin; the sampling along segments is the model's
         with torch.no_grad():
-            hit = torch.sigmoid(self.collision_net(_features(self, q, scene[edge]).float())) > self.collision_threshold
-        collides = torch.zeros(P, dtype=torch.bool, device=edge.device)
-        collides.index_fill_(0, edge[hit], True)
-        return ~collides
+            prob = torch.sigmoid(self.collision_net(_features(self, config, scene).float()))
+        return prob > self.collision_threshold
 
 
 def with_learned_edges(model, net: CollisionNet, threshold: float = 0.5) -> TaskModel:
-    """The task model with its planner edge check (``segment_collision_free``) done by ``net`` at ``threshold``,
+    """The task model with its planner edge check (``segment_collision_free``, through ``edge_samples_collide``)
+    done by ``net`` at ``threshold``,
     as the paper's planner does; the env's own step, the rewards and the demonstrations' checks stay exact.
 
     Examples:
