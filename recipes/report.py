@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -108,10 +109,18 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
     return out
 
 
+@functools.cache
 def _paper_settings() -> dict:
     from omegaconf import OmegaConf
 
     return _flatten(OmegaConf.to_container(OmegaConf.load(PAPER_SETTINGS)))
+
+
+@functools.cache
+def _schema_defaults() -> dict:
+    import schema
+
+    return _flatten(dataclasses.asdict(schema.TrainConfig()))
 
 
 def _relevant(config: dict, key: str) -> bool:
@@ -135,13 +144,10 @@ def additions(config: dict | None) -> list[str] | None:
     """
     if config is None or _get(config, "algorithm") is None:
         return None
-    import schema
-
-    defaults = _flatten(dataclasses.asdict(schema.TrainConfig()))
+    given = _flatten(config)
     out = []
     for key, paper in _paper_settings().items():
-        value = _get(config, key)
-        value = defaults.get(key) if value is None and key not in _flatten(config) else value
+        value = given[key] if key in given else _schema_defaults().get(key)
         if _relevant(config, key) and value != paper:
             out.append(SETTING_NAMES.get(key, key))
     return out
