@@ -13,6 +13,7 @@ from tensordict import TensorDict
 
 from torchrl_silp import CollisionReason, UR5e, UR5eReach, sphere_box_distance
 from torchrl_silp.geometry import aabb_from_center, point_box_signed_distance
+from torchrl_silp.models.base import check_boxes
 
 SETTINGS = settings(max_examples=25, deadline=None, derandomize=True)
 angles = st.tuples(
@@ -259,6 +260,26 @@ def test_bad_collision_inputs(model):
         model.segment_collision_free(torch.zeros(1, 3), torch.ones(1, 3), scene(torch.zeros(6), 1), resolution=0)
 
 
+_SPECIAL = st.sampled_from([0.0, -0.5, 0.5, 1e30, -1e30, float("nan"), float("inf"), -float("inf")])
+
+
+@settings(max_examples=200, deadline=None)
+@given(values=st.lists(st.one_of(st.floats(-2.0, 2.0, width=32), _SPECIAL), min_size=6, max_size=36).map(
+    lambda v: v[: len(v) // 6 * 6]))
+def test_box_check_accepts_exactly_the_finite_ordered_boxes(values):
+    """check_boxes against an element-by-element reading of the rule, NaN and inf included."""
+    boxes = torch.tensor(values, dtype=torch.float32).reshape(-1, 6)
+    finite = all(math.isfinite(v) for v in values)
+    ordered = all(values[i] <= values[i + 1] for i in range(0, len(values), 2))
+    if finite and ordered:
+        check_boxes("obstacle", boxes)
+        return
+    with pytest.raises(ValueError) as err:
+        check_boxes("obstacle", boxes)
+    expected = "obstacle contains NaN or inf" if not finite else "obstacle: a box has min > max"
+    assert str(err.value).startswith(expected)
+
+
 def test_compiled_kernel_equals_the_eager_one_at_padded_sizes(model):
     """compile_collision=True: batches padded to a power of two, flags and TCP equal to the eager kernel's."""
     compiled = UR5eReach(model.robot, compile_collision=True)
@@ -275,3 +296,19 @@ def test_compiled_kernel_equals_the_eager_one_at_padded_sizes(model):
         torch.testing.assert_close(tcp, ref_tcp)
     empty = compiled.collision_flags(torch.zeros(0, 3), torch.zeros(0, 6))
     assert empty[0].shape == (0, 1)
+
+
+def test_compiled_kernel_follows_margins_and_layouts_at_one_size(model):
+    """One padded size met with other margins and a strided config: each result is the eager kernel's."""
+    compiled = UR5eReach(model.robot, compile_collision=True)
+    gen = torch.Generator().manual_seed(4)
+    tasks = model.sample_tasks(64, generator=gen)
+    anywhere = model.config_low + torch.rand(64, 3, generator=gen) * (model.config_high - model.config_low)
+    strided = torch.cat([anywhere, anywhere], -1)[:, :3]  # rows 6 floats apart: another layout, same values
+    calls = [(anywhere, None), (anywhere, model.motion_margin()), (strided, {"obstacle": 0.05}), (anywhere, None)]
+    for q, margin in calls:
+        flags, tcp = compiled.collision_flags(q, tasks.select("obstacle"), margin)
+        ref_flags, ref_tcp = model.collision_flags(q, tasks.select("obstacle"), margin)
+        assert torch.equal(flags, ref_flags) and bool((flags != 0).any()) and bool((flags == 0).any())
+        torch.testing.assert_close(tcp, ref_tcp)
+    assert len(compiled._compiled_signatures) == 3  # the last call reused the first one's compilation

@@ -98,6 +98,9 @@ class UR5eReach(ArmReach):
             # inductor vectorises a static-shape kernel better than a dynamic-shape one: batches are
             # padded to a power of two, one compilation per size met
             self._kernel = torch.compile(self._collision_kernel, dynamic=False)
+        # the (padded size, margins, device, dtype, layout) compiled so far: the recompile limit is raised
+        # only around a call that compiles a new one (patching dynamo's config costs ~20 us a call)
+        self._compiled_signatures: set = set()
 
     # ------------------------------------------------------------ kinematics
     def transition(self, state: TensorDictBase, action: torch.Tensor) -> TensorDict:
@@ -138,8 +141,13 @@ class UR5eReach(ArmReach):
             if size != n:  # padded with copies of the first row, dropped below
                 q = torch.cat([q, q[:1].expand(size - n, 3)])
                 box = torch.cat([box, box[:1].expand(size - n, 6)])
-            with torch._dynamo.config.patch(recompile_limit=64):  # one compilation per power of two
+            signature = (size, margins, q.device, q.dtype, q.stride())  # what the compiled kernel specialises on
+            if signature in self._compiled_signatures:
                 flags, tcp = self._kernel(q, box, *margins)
+            else:
+                with torch._dynamo.config.patch(recompile_limit=64):  # one compilation per power of two
+                    flags, tcp = self._kernel(q, box, *margins)
+                self._compiled_signatures.add(signature)
             flags, tcp = flags[:n], tcp[:n]
         else:
             flags, tcp = self._collision_kernel(q, box, *margins)
