@@ -97,8 +97,8 @@ class UR5eReach(ArmReach):
         if compile_collision:
             # inductor vectorises a static-shape kernel better than a dynamic-shape one: batches are
             # padded to a power of two, one compilation per size met
-            self._kernel = torch.compile(self._collision_kernel, dynamic=False)
-        # the (padded size, margins, device, dtype, layout) compiled so far: the recompile limit is raised
+            self._kernel = torch.compile(self._collision_kernel_from_trig, dynamic=False)
+        # the (padded size, margins, device, dtype) compiled so far: the recompile limit is raised
         # only around a call that compiles a new one (patching dynamo's config costs ~20 us a call)
         self._compiled_signatures: set = set()
 
@@ -141,12 +141,13 @@ class UR5eReach(ArmReach):
             if size != n:  # padded with copies of the first row, dropped below
                 q = torch.cat([q, q[:1].expand(size - n, 3)])
                 box = torch.cat([box, box[:1].expand(size - n, 6)])
-            signature = (size, margins, q.device, q.dtype, q.stride())  # what the compiled kernel specialises on
+            cos6, sin6 = self.robot.joint_trig(q)  # outside the compiled code: see sphere_coords_from_trig
+            signature = (size, margins, q.device, q.dtype)  # what the compiled kernel specialises on
             if signature in self._compiled_signatures:
-                flags, tcp = self._kernel(q, box, *margins)
+                flags, tcp = self._kernel(cos6, sin6, box, *margins)
             else:
                 with torch._dynamo.config.patch(recompile_limit=64):  # one compilation per power of two
-                    flags, tcp = self._kernel(q, box, *margins)
+                    flags, tcp = self._kernel(cos6, sin6, box, *margins)
                 self._compiled_signatures.add(signature)
             flags, tcp = flags[:n], tcp[:n]
         else:
@@ -156,8 +157,17 @@ class UR5eReach(ArmReach):
     def _collision_kernel(self, q, box, m_obstacle: float = 0.0, m_table: float = 0.0, m_self: float = 0.0,
                           m_workspace: float = 0.0):
         # q (N, 3), box (N, 6) -> flags (N,) uint8, tcp (N, 3); margins inflate the spheres
+        (x, y, z), tcp, _ = self.robot.sphere_coords(q)
+        return self._flags_of_spheres(x, y, z, tcp, box, m_obstacle, m_table, m_self, m_workspace)
+
+    def _collision_kernel_from_trig(self, cos6, sin6, box, m_obstacle: float = 0.0, m_table: float = 0.0,
+                                    m_self: float = 0.0, m_workspace: float = 0.0):
+        # the compiled kernel: the joints' cosines and sines (N, 6) in, as _collision_kernel otherwise
+        (x, y, z), tcp, _ = self.robot.sphere_coords_from_trig(cos6, sin6)
+        return self._flags_of_spheres(x, y, z, tcp, box, m_obstacle, m_table, m_self, m_workspace)
+
+    def _flags_of_spheres(self, x, y, z, tcp, box, m_obstacle, m_table, m_self, m_workspace):
         robot = self.robot
-        (x, y, z), tcp, bound = robot.sphere_coords(q)
         r = robot.sphere_radii
         r2 = (r + m_obstacle).square()
         gap2 = None
