@@ -741,6 +741,27 @@ def paper_table_block(runs: dict[str, list[dict]], name: str, results: Path, fig
     return "\n".join(lines)
 
 
+def _ablation_noise_lines(runs: dict[str, list[dict]], base: dict | None) -> list[str]:
+    """Which ablations move validation success by more than twice ours' seed-to-seed spread."""
+    ours = _values(runs.get("sac_silp_plus_ext", []), "validation_success_rate")
+    if len(ours) < 2 or base is None:
+        return []
+    spread = float(np.std(ours))
+    reference = base["summary"]["validation_success_rate"]
+    beyond, within = [], []
+    for method in ABLATIONS:
+        run = {r["seed"]: r for r in runs.get(method, [])}.get(0)
+        value = run["summary"].get("validation_success_rate") if run else None
+        if value is None:
+            continue
+        (beyond if abs(value - reference) > 2 * spread else within).append(f"`{method}` ({value - reference:+.3f})")
+    if not beyond and not within:
+        return []
+    return [f"Ours over its {len(ours)} seeds: validation success {np.mean(ours):.3f}, std {spread:.3f}. "
+            f"Beyond twice that std from ours' seed 0: {', '.join(beyond) or 'none'}. "
+            f"Within it: {', '.join(within) or 'none'}.", ""]
+
+
 def ablations_block(runs: dict[str, list[dict]], results: Path, command: str) -> str:
     """Ours (sac_silp_plus_ext, seed 0) against itself with one setting set back, on the validation tasks."""
     begin, end = markers("ablations")
@@ -768,6 +789,7 @@ def ablations_block(runs: dict[str, list[dict]], results: Path, command: str) ->
              "its difference from ours (all additions, seed 0). Test success: the 1000 test tasks, read once at "
              "the end. One seed each: a difference within a few hundredths is within seed noise (compare the "
              "spread of ours over its 3 seeds in Table 1).", "", *rows, ""]
+    lines += _ablation_noise_lines(runs, base)
     if mine:
         lines += provenance_lines(mine, "Budget (the runs' config.yaml):")
     lines.append(end)

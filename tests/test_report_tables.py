@@ -88,6 +88,19 @@ def test_ablations_report_the_validation_difference(tmp_path):
     assert _row(text, "sac_silp_plus_ext_auto_entropy")[2] == "not run"
 
 
+def test_ablations_sort_each_change_by_ours_seed_spread(tmp_path):
+    ours = {"algorithm": "sac", "silp": {"demos": True}, "exploration": {"mode": "gp"}}
+    for seed, validation in enumerate((0.96, 0.97, 0.98)):  # std (ddof=0) sqrt(2/3) * 0.01 = 0.00816
+        _run(tmp_path, "sac_silp_plus_ext", seed, 0.97, validation=validation, config=ours)
+    _run(tmp_path, "sac_silp_plus_ext_no_next_tcp", 0, 0.95, validation=0.94, config=ours)  # -0.020: beyond 0.0163
+    _run(tmp_path, "sac_silp_plus_ext_no_goal_node", 0, 0.95, validation=0.975, config=ours)  # +0.015: within
+    text = report.ablations_block(report.load_results(tmp_path), tmp_path, "cmd")
+    line = next(line for line in text.splitlines() if line.startswith("Ours over its 3 seeds"))
+    assert line == ("Ours over its 3 seeds: validation success 0.970, std 0.008. Beyond twice that std from ours' "
+                    "seed 0: `sac_silp_plus_ext_no_next_tcp` (-0.020). Within it: `sac_silp_plus_ext_no_goal_node` "
+                    "(+0.015).")
+
+
 @pytest.mark.parametrize("name", ["table2", "table3", "table4", "tableA1"])
 def test_every_paper_table_row_is_a_sweep_method(name):
     registry = yaml.safe_load((RECIPES / "config" / "sweep.yaml").read_text())["registry"]
