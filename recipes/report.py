@@ -741,6 +741,11 @@ def paper_table_block(runs: dict[str, list[dict]], name: str, results: Path, fig
     return "\n".join(lines)
 
 
+def _seed0(runs: dict[str, list[dict]], method: str) -> dict | None:
+    """The seed-0 run of ``method`` (the ablations' one seed), None if it has not run."""
+    return next((r for r in runs.get(method, []) if r["seed"] == 0), None)
+
+
 def _ablation_noise_lines(runs: dict[str, list[dict]], base: dict | None) -> list[str]:
     """Which ablations move validation success by more than twice ours' seed-to-seed spread."""
     ours = _values(runs.get("sac_silp_plus_ext", []), "validation_success_rate")
@@ -750,7 +755,7 @@ def _ablation_noise_lines(runs: dict[str, list[dict]], base: dict | None) -> lis
     reference = base["summary"]["validation_success_rate"]
     beyond, within = [], []
     for method in ABLATIONS:
-        run = {r["seed"]: r for r in runs.get(method, [])}.get(0)
+        run = _seed0(runs, method)
         value = run["summary"].get("validation_success_rate") if run else None
         if value is None:
             continue
@@ -765,7 +770,7 @@ def _ablation_noise_lines(runs: dict[str, list[dict]], base: dict | None) -> lis
 def ablations_block(runs: dict[str, list[dict]], results: Path, command: str) -> str:
     """Ours (sac_silp_plus_ext, seed 0) against itself with one setting set back, on the validation tasks."""
     begin, end = markers("ablations")
-    base = {r["seed"]: r for r in runs.get("sac_silp_plus_ext", [])}.get(0)
+    base = _seed0(runs, "sac_silp_plus_ext")
 
     def validation(run):
         return run["summary"].get("validation_success_rate") if run else None
@@ -773,7 +778,7 @@ def ablations_block(runs: dict[str, list[dict]], results: Path, command: str) ->
     rows = ["| Run | Changed setting | Validation success | vs ours | Test success | Training episodes (frames) "
             "| Training time |", "|---|---|---:|---:|---:|---:|---:|"]
     for method, change in [("sac_silp_plus_ext", "— (ours, all additions)")] + list(ABLATIONS.items()):
-        run = {r["seed"]: r for r in runs.get(method, [])}.get(0)
+        run = _seed0(runs, method)
         if run is None:
             rows.append(f"| `{method}` | `{change}` | not run | | | | |")
             continue
