@@ -37,21 +37,25 @@ from torchrl_silp.models import UR5eReach
 from torchrl_silp.robot import default_urdf_path
 
 
-def timed(fn, min_time: float, min_reps: int = 3) -> float:
+def timed(fn, min_time: float, min_reps: int = 3, device: torch.device = torch.device("cpu")) -> float:
     """Seconds per call: warm up for ``min_time`` (at least one call), then repeat until ``min_time`` has passed.
 
     The warm-up is that long because a compiled step meets new sizes for a while: its
     swept-motion check samples a number of configurations set by the step's largest joint
     move, padded to a power of two, one compilation per size; timing them would count compilations.
     """
+    # a CUDA call returns once its kernels are queued: wait for them before reading the clock
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     start = time.perf_counter()
     fn()
     while time.perf_counter() - start < min_time:
         fn()
+    sync()
     reps, start = 0, time.perf_counter()
     while True:
         fn()
         reps += 1
+        sync()
         elapsed = time.perf_counter() - start
         if elapsed >= min_time and reps >= min_reps:
             return elapsed / reps
@@ -60,7 +64,7 @@ def timed(fn, min_time: float, min_reps: int = 3) -> float:
 def bench_envbase(env: UR5eReachEnv, min_time: float) -> float:
     td = env.reset()
     gen = torch.Generator().manual_seed(0)
-    actions = torch.rand(64, *env.batch_size, env.model.action_dim, generator=gen) * 2 - 1
+    actions = (torch.rand(64, *env.batch_size, env.model.action_dim, generator=gen) * 2 - 1).to(env.device)
     state = {"td": td, "i": 0}
 
     def one():
@@ -69,14 +73,14 @@ def bench_envbase(env: UR5eReachEnv, min_time: float) -> float:
         state["i"] += 1
         _, state["td"] = env.step_and_maybe_reset(td)
 
-    return env.batch_size.numel() / timed(one, min_time)
+    return env.batch_size.numel() / timed(one, min_time, device=env.device)
 
 
 def bench_model(model: UR5eReach, batch: int, kind: str, min_time: float) -> float:
     """States (or configurations) per second of ``model.transition``, ``model.step`` or ``model.collision_flags``."""
-    gen = torch.Generator().manual_seed(0)
+    gen = torch.Generator(device=model.device).manual_seed(0)
     state = model.sample_tasks(batch, gen).select(*model.state_keys)
-    action = torch.rand(batch, model.action_dim, generator=gen) * 2 - 1
+    action = torch.rand(batch, model.action_dim, generator=gen, device=model.device) * 2 - 1
     scene = state.select(*model.scene_keys)
     config = state.get(model.config_key)
     calls = {
@@ -84,7 +88,7 @@ def bench_model(model: UR5eReach, batch: int, kind: str, min_time: float) -> flo
         "step": lambda: model.step(state, action),
         "collision_flags": lambda: model.collision_flags(config, scene),
     }
-    return batch / timed(calls[kind], min_time)
+    return batch / timed(calls[kind], min_time, device=model.device)
 
 
 def bench_gym(min_time: float) -> float:
@@ -137,19 +141,29 @@ def main() -> None:
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 1024, 16384])
     parser.add_argument("--no-compile", action="store_true", help="skip the compiled variant")
     parser.add_argument("--mujoco-configs", type=int, default=None,
-                        help="configurations MuJoCo checks (default 100000, 20000 with --quick)")
+                        help="configurations MuJoCo checks (default 100000, 20000 with --quick; 0: no MuJoCo row)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--device", default="cpu", help="where the envs and the model run (MuJoCo runs on the CPU)")
     args = parser.parse_args()
+    device = torch.device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     min_time = 0.5 if args.quick else 2.0
     load = os.getloadavg()[0]
+    where = f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}"
+          f"{where}, device {device}"
           f"{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}")
 
-    n_mujoco = args.mujoco_configs or (20_000 if args.quick else 100_000)
-    mj_rate, ngeom = bench_mujoco(n_mujoco)
-    print(f"MuJoCo mj_kinematics + mj_collision ({ngeom} geoms), Python loop, 1 thread: {mj_rate:,.0f} configs/s")
+    if args.mujoco_configs is not None and args.mujoco_configs < 0:
+        parser.error(f"--mujoco-configs must be >= 0, got {args.mujoco_configs}")
+    n_mujoco = (20_000 if args.quick else 100_000) if args.mujoco_configs is None else args.mujoco_configs
+    mj_rate = float("nan")
+    if n_mujoco:
+        mj_rate, ngeom = bench_mujoco(n_mujoco)
+        print(f"MuJoCo mj_kinematics + mj_collision ({ngeom} geoms), Python loop, 1 thread: {mj_rate:,.0f} configs/s")
+    else:
+        print("MuJoCo: not measured (--mujoco-configs 0)")
     gym_rate = bench_gym(min_time)
     print(f"Gymnasium env (batch 1): {gym_rate:,.0f} steps/s ({1e6 / gym_rate:.0f} us/step)")
 
@@ -160,7 +174,7 @@ def main() -> None:
     print("-" * len(header))
     for name, compiled in variants:
         for b in args.batch_sizes:
-            env = UR5eReachEnv(batch_size=(b,), seed=0, compile_collision=compiled)
+            env = UR5eReachEnv(batch_size=(b,), seed=0, compile_collision=compiled, device=device)
             model = env.model
             step = bench_envbase(env, min_time)
             trans = bench_model(model, b, "transition", min_time)

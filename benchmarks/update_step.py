@@ -46,7 +46,7 @@ sys.path.insert(0, str(RECIPES))
 import schema  # noqa: E402
 from utils import (  # noqa: E402
     compile_update, make_actor_critic, make_buffers, make_env, make_gradient_step, make_loss, make_model,
-    make_optimizers,
+    make_optimizers, resolve_device,
 )
 
 from torchrl_silp.objectives import SILPLoss  # noqa: E402
@@ -71,12 +71,16 @@ class _UnfusedModel:
         return (nxt, *self._model.outcome(state, nxt))
 
 
-def median_ms(fn, reps: int) -> float:
+def median_ms(fn, reps: int, device: torch.device = torch.device("cpu")) -> float:
+    # a CUDA call returns once its kernels are queued: wait for them before reading the clock
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     fn()
     times = []
     for _ in range(reps):
+        sync()
         start = time.perf_counter()
         fn()
+        sync()
         times.append(time.perf_counter() - start)
     return 1e3 * statistics.median(times)
 
@@ -93,7 +97,7 @@ def main(argv: list[str] | None = None) -> dict:
         torch.set_num_threads(args.threads)
     with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
         cfg = compose(config_name="sac_silp", overrides=args.overrides)
-    device = torch.device("cpu")
+    device = resolve_device(cfg)
     model = make_model(cfg, device)
     env = make_env(cfg, model, device, seed=0)
     actor, critic = make_actor_critic(cfg, model, env, device)
@@ -117,19 +121,22 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         parts["rl loss"] = (lambda: loss(batch), lambda: partial(torch.compile(loss), batch))
     parts["update"] = (lambda: gradient_step(batch), lambda: partial(compile_update(cfg, gradient_step), batch))
-    figures = {name: {"eager": median_ms(eager, args.reps)} for name, (eager, _) in parts.items()}
-    if isinstance(loss, SILPLoss) and cfg.silp.filter == "reward":
-        # the same term through separate transition and outcome calls (FK twice per look-ahead step)
-        fused = loss.model
-        loss.model = _UnfusedModel(fused)
-        try:
-            figures["bc loss, unfused model"] = {"eager": median_ms(lambda: loss.bc_loss(batch), args.reps)}
-        finally:
-            loss.model = fused
-    if args.compile:
-        for name, (_, make_compiled) in parts.items():
-            if make_compiled is None:  # a buffer's sample is not compiled
-                continue
+    where = f", device {device} ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}, "
+          f"{os.cpu_count()} CPUs{where}{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}; {cfg.env.name}, "
+          f"batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, overrides {args.overrides or 'none'}")
+    print(f"{'part':>22s}  {'eager':>9s}  {'compiled':>9s}  (compile)")
+    figures = {}
+
+    def print_row(name):  # each row as soon as it is measured: a run cut short keeps what it has
+        f = figures[name]
+        compiled = f"{f['compiled']:6.2f} ms" if "compiled" in f else " " * 9
+        took = f"  ({f['compile_s']:.0f} s)" if "compile_s" in f else ""
+        print(f"{name:>22s}  {f['eager']:6.2f} ms  {compiled}{took}", flush=True)
+
+    for name, (eager, make_compiled) in parts.items():
+        figures[name] = {"eager": median_ms(eager, args.reps, device)}
+        if args.compile and make_compiled is not None:  # (a buffer's sample is not compiled)
             # each part compiled afresh: the frames a part shares with another (the loss's forward)
             # would otherwise keep both parts' cache entries and check both sets of guards per call
             torch._dynamo.reset()
@@ -137,24 +144,27 @@ def main(argv: list[str] | None = None) -> dict:
             start = time.perf_counter()
             compiled()
             figures[name]["compile_s"] = time.perf_counter() - start
-            figures[name]["compiled"] = median_ms(compiled, args.reps)
-    floor_ms = 1e3 * update_flops(cfg, loss, batch) / gemm_rate()
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}, "
-          f"{os.cpu_count()} CPUs{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}; {cfg.env.name}, "
-          f"batch {cfg.optim.batch_size}, network {list(cfg.network.hidden_sizes)}, overrides {args.overrides or 'none'}")
-    print(f"{'part':>22s}  {'eager':>9s}  {'compiled':>9s}  (compile)")
-    for name, f in figures.items():
-        compiled = f"{f['compiled']:6.2f} ms" if "compiled" in f else " " * 9
-        took = f"  ({f['compile_s']:.0f} s)" if "compile_s" in f else ""
-        print(f"{name:>22s}  {f['eager']:6.2f} ms  {compiled}{took}")
-    print(f"{'matmul floor of update':>22s}  {floor_ms:6.2f} ms  (its matrix products at this core's 256^3 rate)")
+            figures[name]["compiled"] = median_ms(compiled, args.reps, device)
+        print_row(name)
+    if isinstance(loss, SILPLoss) and cfg.silp.filter == "reward":
+        # the same term through separate transition and outcome calls (FK twice per look-ahead step)
+        fused = loss.model
+        loss.model = _UnfusedModel(fused)
+        try:
+            figures["bc loss, unfused model"] = {"eager": median_ms(lambda: loss.bc_loss(batch), args.reps, device)}
+        finally:
+            loss.model = fused
+        print_row("bc loss, unfused model")
+    floor_ms = 1e3 * update_flops(cfg, loss, batch) / gemm_rate(device)
+    print(f"{'matmul floor of update':>22s}  {floor_ms:6.2f} ms  (its matrix products at this "
+          f"{'device' if device.type == 'cuda' else 'core'}'s 256^3 rate)")
     return figures
 
 
-def gemm_rate() -> float:
-    """FLOP/s of one 256 x 256 x 256 float32 product on this core (median of 200)."""
-    a, b = torch.randn(256, 256), torch.randn(256, 256)
-    return 2 * 256**3 / (median_ms(lambda: a @ b, 200) / 1e3)
+def gemm_rate(device: torch.device = torch.device("cpu")) -> float:
+    """FLOP/s of one 256 x 256 x 256 float32 product on ``device`` (median of 200)."""
+    a, b = torch.randn(256, 256, device=device), torch.randn(256, 256, device=device)
+    return 2 * 256**3 / (median_ms(lambda: a @ b, 200, device) / 1e3)
 
 
 def update_flops(cfg, loss, batch) -> float:

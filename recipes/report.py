@@ -1058,6 +1058,11 @@ def speed_block(results: Path, command: str) -> str:
         lines += [f"`{path.name}`:", "", "```", text, "```", ""]
     if not gpu:
         lines += ["No GPU figure yet: no GPU machine has been lent to this project's sessions.", ""]
+    elif any(path.name.startswith("gpu_") for path in files):
+        lines += ["The `gpu_*.txt` files come from `bash benchmarks/gpu.sh` (its parts one after another, each "
+                  "under its own time limit) on a lent GPU machine, under that machine's own torch build, "
+                  "named on each file's second line. Its load average counts the previous part's compile "
+                  "workers winding down on its 16 cores, not another job.", ""]
     lines.append(SPEED_END)
     return "\n".join(lines)
 

@@ -94,6 +94,12 @@ def _dotted(tree, field: str):
     return tree
 
 
+def resolve_device(cfg) -> torch.device:
+    """``cfg.device`` checked and resolved ("auto": CUDA when there is one)."""
+    check_device(cfg.device)
+    return torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
+
+
 def start_run(cfg) -> tuple[torch.device, Path]:
     """What every recipe does first: ``(device, run_dir)``.
 
@@ -103,8 +109,7 @@ def start_run(cfg) -> tuple[torch.device, Path]:
     ``cfg.run_dir`` and saves the resolved config there as ``config.yaml``: what rebuilds a
     run's networks from its checkpoint (``load_trained_networks``) and what a report cites.
     """
-    check_device(cfg.device)
-    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
+    device = resolve_device(cfg)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)

@@ -71,6 +71,11 @@ def test_speed_block_holds_the_benchmark_outputs_verbatim(tmp_path):
     assert out.read_text().count("<!-- speed:begin -->") == 1
     with pytest.raises(FileNotFoundError, match="no benchmark output"):
         report.speed_block(tmp_path / "empty", "cmd")
+    # a GPU run's output replaces the line saying there is none, and says where it came from
+    (results / "gpu_update_step.txt").write_text("$ python benchmarks/update_step.py device=cuda\ntorch 2.11.0+cu130\n")
+    block = report.speed_block(results, "cmd")
+    assert "No GPU figure yet" not in block and "benchmarks/gpu.sh" in block
+    assert "```\n$ python benchmarks/update_step.py device=cuda\ntorch 2.11.0+cu130\n```" in block
 
 
 def test_settings_name_each_addition_a_run_had_on():
