@@ -132,6 +132,16 @@ def test_table5_means_over_seeds_beside_the_papers_scenarios(tmp_path):
     # the paper: 3 and 4 failures in 50 Free trials, in simulation and on the real robot
     assert cells[7:] == ["0.94", "0.92"]
     assert "| block | none |" not in text and "box noise 0.01 m, latency 1 step(s)" in text
+    # a run's pick-and-place file shares its checkpoint: the runs line names each policy once
+    pick = {**result, "rows": [{**rows[0], "scenario": "pick_place"}]}
+    (tmp_path / "sac_silp_plus_seed1_pick_place.json").write_text(json.dumps(pick))
+    prm = {**result, "method": "prm_0.1_replanned", "checkpoint": None, "seed": 0, "trained_episodes": 0}
+    (tmp_path / "prm_0.1_replanned_seed0_none.json").write_text(json.dumps(prm))
+    runs = next(line for line in report.table5_block(report.load_transfer(tmp_path), tmp_path, "cmd").splitlines()
+                if line.startswith("Runs: "))
+    assert runs == ("Runs: PRM-0.1, replanned every control step: seed 0 (a planner, no training); "
+                    "SAC-SILP+ (paper's): seed 0 (10,000 episodes, `runs/x/seed0`), "
+                    "seed 1 (10,000 episodes, `runs/x/seed1`).")
     with pytest.raises(FileNotFoundError, match="transfer"):
         report.load_transfer(tmp_path / "none")
 
