@@ -304,39 +304,62 @@ def make_optimizers(cfg, loss) -> dict[str, optim.Optimizer]:
     rl = rl_loss_of(loss)
     actor_params = list(rl.actor_network_params.flatten_keys().values())
     critic_params = rl.qvalue_network_params if hasattr(rl, "qvalue_network_params") else rl.value_network_params
+    # fused: one ATen kernel per optimiser step, outside the compiled forward and backward
     opts = {
-        "actor": optim.Adam(actor_params, lr=cfg.optim.lr),
-        "critic": optim.Adam(list(critic_params.flatten_keys().values()), lr=cfg.optim.lr),
+        "actor": optim.Adam(actor_params, lr=cfg.optim.lr, fused=True),
+        "critic": optim.Adam(list(critic_params.flatten_keys().values()), lr=cfg.optim.lr, fused=True),
     }
     if cfg.algorithm == "sac":
-        opts["alpha"] = optim.Adam([rl.log_alpha], lr=cfg.optim.lr)
+        opts["alpha"] = optim.Adam([rl.log_alpha], lr=cfg.optim.lr, fused=True)
     return opts
 
 
-def make_gradient_step(loss, optimizers: dict, updater):
+class GradientStep:
     """One gradient update on a sampled batch: the losses, backward, every optimiser's step, the target
-    update. Returns the detached loss TensorDict."""
+    update; calling it returns the detached loss TensorDict.
 
-    def gradient_step(sample):
-        for opt in optimizers.values():  # (a first compiled call that fails is redone eagerly from here)
-            opt.zero_grad(set_to_none=True)
-        loss_td = loss(sample)
+    :attr:`forward_backward` (the losses and their backward) is the part :func:`compile_update`
+    compiles. The optimisers' fused steps and the target update run eagerly around it: traced,
+    each ``Optimizer.step`` breaks the graph twice, and in a loop over optimisers dynamo gives up
+    on the whole function.
+    """
+
+    def __init__(self, loss, optimizers: dict, updater):
+        self.loss, self.optimizers, self.updater = loss, optimizers, updater
+        self.forward_backward = self._forward_backward
+
+    def _forward_backward(self, sample):
+        loss_td = self.loss(sample)
         sum(v for k, v in loss_td.items() if k.startswith("loss_")).backward()
-        for opt in optimizers.values():
-            opt.step()
-        updater.step()
         return loss_td.detach()
 
-    return gradient_step
+    def zero_grad(self) -> None:
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+
+    def __call__(self, sample):
+        self.zero_grad()
+        loss_td = self.forward_backward(sample)
+        for opt in self.optimizers.values():
+            opt.step()
+        self.updater.step()
+        return loss_td
+
+
+def make_gradient_step(loss, optimizers: dict, updater) -> GradientStep:
+    """The recipe's update (:class:`GradientStep`)."""
+    return GradientStep(loss, optimizers, updater)
 
 
 def compile_update(cfg, gradient_step):
     """``gradient_step`` compiled with ``torch.compile`` when ``cfg.compile.compile`` (TorchRL's SOTA recipes'
-    switch), else itself. A first call whose compilation fails (e.g. no C++ compiler for inductor's
-    CPU code) warns and runs eagerly from then on."""
+    switch), else itself: of a :class:`GradientStep`, its forward and backward; any other callable whole.
+    A first call whose compilation fails (e.g. no C++ compiler for inductor's CPU code) warns and runs
+    eagerly from then on."""
     if not cfg.compile.compile:
         return gradient_step
-    compiled = torch.compile(gradient_step, mode=cfg.compile.compile_mode)
+    part = gradient_step.forward_backward if isinstance(gradient_step, GradientStep) else gradient_step
+    compiled = torch.compile(part, mode=cfg.compile.compile_mode)
     chosen = []
 
     def call(sample):
@@ -348,10 +371,16 @@ def compile_update(cfg, gradient_step):
         except Exception as err:  # noqa: BLE001 - any compiler failure falls back on the same function
             warnings.warn(f"compile.compile: torch.compile failed ({type(err).__name__}: {str(err)[:300]}); "
                           "the update runs eagerly")
-            chosen.append(gradient_step)
-            out = gradient_step(sample)
+            chosen.append(part)
+            if isinstance(gradient_step, GradientStep):
+                gradient_step.zero_grad()  # whatever the failed call accumulated
+            out = part(sample)
         return out
 
+    if isinstance(gradient_step, GradientStep):  # a new step on the same loss and optimisers
+        step = GradientStep(gradient_step.loss, gradient_step.optimizers, gradient_step.updater)
+        step.forward_backward = call
+        return step
     return call
 
 

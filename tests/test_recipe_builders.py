@@ -260,6 +260,35 @@ def _no_fallback_warning():
     return check()
 
 
+def test_a_gradient_step_whose_compilation_fails_updates_as_the_eager_one(monkeypatch):
+    """The fallback zeroes what the failed call accumulated: the update equals the eager one exactly."""
+    cfg = config(*TINY, "network.hidden_sizes=[32,32]", "optim.batch_size=32", "compile.compile=true")
+    loss, buffers, eager_step = _gradient_step_setup(cfg)
+    start = {k: v.clone() for k, v in loss.state_dict().items()}
+    batch = buffers.sample()
+    torch.manual_seed(1)
+    eager_step(batch)
+    after_eager = {k: v.clone() for k, v in loss.state_dict().items()}
+
+    def half_done(fn, mode=None):
+        def failing(sample):
+            rng = torch.get_rng_state()
+            fn(sample)  # the losses' gradients accumulate, then the "compiler" fails
+            torch.set_rng_state(rng)  # (so that the redone call draws what the eager one drew)
+            raise RuntimeError("no C++ compiler")
+        return failing
+
+    monkeypatch.setattr(torch, "compile", half_done)
+    loss2, _, step2 = _gradient_step_setup(cfg)
+    loss2.load_state_dict(start)
+    compiled = utils.compile_update(cfg, step2)
+    torch.manual_seed(1)
+    with pytest.warns(UserWarning, match="runs eagerly"):
+        compiled(batch)
+    for key, value in after_eager.items():
+        torch.testing.assert_close(loss2.state_dict()[key], value, rtol=0, atol=0, msg=key)
+
+
 def test_a_failing_compilation_falls_back_on_the_eager_step(monkeypatch):
     cfg = config(*TINY, "compile.compile=true")
     calls = []
