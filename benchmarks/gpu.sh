@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU figures of issue 14 in one short run: env throughput at B = 16384 and 65536, one update
+# The GPU figures in one short run: env throughput at B = 16384 and 65536, one update
 # eager and compiled (default mode and reduce-overhead, i.e. CUDA graphs), the planner at B = 1024
 # episodes, and the main job until its validation success reaches 0.95 (or a wall-time cap).
 #
@@ -7,8 +7,9 @@
 #   DEVICE=cpu LIMIT_PERCENT=10 bash benchmarks/gpu.sh bench   # the script's own dry run, on the CPU
 #
 # Each part has its own time limit so that one slow part cannot eat the others' time; what a part
-# printed before its limit stays in its file. Where the machine's Python lacks this project's
-# dependencies, wheels in .whl/ are installed to /tmp/site first (the device tool's way to bring them).
+# printed before its limit stays in its file. The package runs from this checkout; where the machine's
+# Python lacks its dependencies and has no index to install from, wheels put in .whl/ are installed
+# to /tmp/site first.
 set -u
 cd "$(dirname "$0")/.."
 OUT=${OUT:-gpu_out}
@@ -30,7 +31,7 @@ run() {  # run NAME SECONDS CMD...: the command's output to $OUT/NAME.txt and to
     shift 2
     echo "=== $name ($(date -u +%H:%M:%S), limit ${limit}s): $*" | tee -a "$OUT/log.txt"
     local start=$SECONDS
-    mkdir -p /tmp/gpu_err  # (stderr stays out of $OUT: the device tool brings back 8 files at most)
+    mkdir -p /tmp/gpu_err  # stderr (compile warnings) stays out of $OUT: one small file per part there
     timeout -k 5 "$limit" "$@" >"$OUT/$name.txt" 2>"/tmp/gpu_err/$name.err"
     local rc=$?
     grep -v "Warning\|warn(\|^  \|^$" "/tmp/gpu_err/$name.err" | tail -15 >>"$OUT/$name.txt"
