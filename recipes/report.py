@@ -746,6 +746,11 @@ def _seed0(runs: dict[str, list[dict]], method: str) -> dict | None:
     return next((r for r in runs.get(method, []) if r["seed"] == 0), None)
 
 
+def _validation(run: dict | None) -> float | None:
+    """A run's validation success rate; None for a run that has not run or did not record it."""
+    return run["summary"].get("validation_success_rate") if run else None
+
+
 def _ablation_noise_lines(runs: dict[str, list[dict]], base: dict | None) -> list[str]:
     """Which ablations move validation success by more than twice ours' seed-to-seed spread."""
     ours = _values(runs.get("sac_silp_plus_ext", []), "validation_success_rate")
@@ -755,8 +760,7 @@ def _ablation_noise_lines(runs: dict[str, list[dict]], base: dict | None) -> lis
     reference = base["summary"]["validation_success_rate"]
     beyond, within = [], []
     for method in ABLATIONS:
-        run = _seed0(runs, method)
-        value = run["summary"].get("validation_success_rate") if run else None
+        value = _validation(_seed0(runs, method))
         if value is None:
             continue
         (beyond if abs(value - reference) > 2 * spread else within).append(f"`{method}` ({value - reference:+.3f})")
@@ -771,10 +775,6 @@ def ablations_block(runs: dict[str, list[dict]], results: Path, command: str) ->
     """Ours (sac_silp_plus_ext, seed 0) against itself with one setting set back, on the validation tasks."""
     begin, end = markers("ablations")
     base = _seed0(runs, "sac_silp_plus_ext")
-
-    def validation(run):
-        return run["summary"].get("validation_success_rate") if run else None
-
     rows = ["| Run | Changed setting | Validation success | vs ours | Test success | Training episodes (frames) "
             "| Training time |", "|---|---|---:|---:|---:|---:|---:|"]
     for method, change in [("sac_silp_plus_ext", "— (ours, all additions)")] + list(ABLATIONS.items()):
@@ -782,7 +782,7 @@ def ablations_block(runs: dict[str, list[dict]], results: Path, command: str) ->
         if run is None:
             rows.append(f"| `{method}` | `{change}` | not run | | | | |")
             continue
-        v, b, summ = validation(run), validation(base), run["summary"]
+        v, b, summ = _validation(run), _validation(base), run["summary"]
         delta = f"{v - b:+.3f}" if v is not None and b is not None and method != "sac_silp_plus_ext" else ""
         rows.append(f"| `{method}` | `{change}` | {'—' if v is None else f'{v:.3f}'} | {delta} "
                     f"| {summ['success_rate']:.3f} | {summ['episodes']:,} ({summ['frames']:,}) "
@@ -1078,8 +1078,8 @@ def speed_block(results: Path, command: str) -> str:
     elif any(path.name.startswith("gpu_") for path in files):
         lines += ["The `gpu_*.txt` files come from `bash benchmarks/gpu.sh` (its parts one after another, each "
                   "under its own time limit) on a lent GPU machine, under that machine's own torch build, "
-                  "named on each file's second line. Its load average counts the previous part's compile "
-                  "workers winding down on its 16 cores, not another job.", ""]
+                  "named on each file's second line. There a load average counts the previous part's compile "
+                  "workers winding down on that machine's cores, not another job.", ""]
     lines.append(SPEED_END)
     return "\n".join(lines)
 
