@@ -13,6 +13,10 @@ its planned demonstrations, then times (median of ``--reps`` calls):
   the fused step in one run;
 * ``update``: forward + backward + every optimiser step + the soft target update.
 
+``--profile N`` then runs N more compiled updates under ``torch.profiler`` and splits their time
+into what it went to: matrix products, inductor's generated kernels, other ATen operators, the
+optimisers' steps, dynamo's guard checks, and what no operator accounts for (Python, autograd).
+
 Each part runs eager and compiled (``torch.compile`` of the loss or its term; the update
 through the recipe's own ``compile_update``, so ``compile.compile_mode`` applies and
 ``compile.compile=false`` leaves it eager; ``--no-compile`` skips those), and the
@@ -24,6 +28,7 @@ Run::
     python benchmarks/update_step.py                       # SAC-SILP+, the default config
     python benchmarks/update_step.py silp.bc=false silp.demos=false   # plain SAC
     python benchmarks/update_step.py --threads 1 optim.batch_size=512
+    python benchmarks/update_step.py --threads 1 --profile 50    # and where the compiled update's time goes
     python benchmarks/update_step.py env=panda_reach      # another task model (an env config group)
 """
 
@@ -90,6 +95,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--reps", type=int, default=50)
     parser.add_argument("--no-compile", dest="compile", action="store_false", help="eager figures only")
+    parser.add_argument("--profile", type=int, default=0, metavar="N",
+                        help="profile N compiled updates and print where their time goes")
     parser.add_argument("overrides", nargs="*", help="hydra overrides of recipes/config/sac_silp.yaml")
     args = parser.parse_args(argv)
     load = os.getloadavg()[0]  # before this benchmark's own work counts in it
@@ -120,7 +127,13 @@ def main(argv: list[str] | None = None) -> dict:
         parts["bc loss"] = (lambda: loss.bc_loss(batch), lambda: partial(torch.compile(loss.bc_loss), batch))
     else:
         parts["rl loss"] = (lambda: loss(batch), lambda: partial(torch.compile(loss), batch))
-    parts["update"] = (lambda: gradient_step(batch), lambda: partial(compile_update(cfg, gradient_step), batch))
+    compiled_update = []  # the update as compiled by its row, kept for --profile
+
+    def make_compiled_update():
+        compiled_update.append(partial(compile_update(cfg, gradient_step), batch))
+        return compiled_update[-1]
+
+    parts["update"] = (lambda: gradient_step(batch), make_compiled_update)
     where = f", device {device} ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}, "
           f"{os.cpu_count()} CPUs{where}{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}; {cfg.env.name}, "
@@ -158,7 +171,59 @@ def main(argv: list[str] | None = None) -> dict:
     floor_ms = 1e3 * update_flops(cfg, loss, batch) / gemm_rate(device)
     print(f"{'matmul floor of update':>22s}  {floor_ms:6.2f} ms  (its matrix products at this "
           f"{'device' if device.type == 'cuda' else 'core'}'s 256^3 rate)")
+    if args.profile:
+        update = compiled_update[-1] if compiled_update else (lambda: gradient_step(batch))
+        figures["profile"] = profile_update(update, args.profile, device)
+        print(f"where the {'compiled' if compiled_update else 'eager'} update's time goes "
+              f"(torch.profiler, {args.profile} updates, self time per update):")
+        for part, ms in figures["profile"].items():
+            print(f"{part:>22s}  {ms:6.2f} ms")
     return figures
+
+
+# what each profiled event's self time is spent on; the first matching rule wins, the rest is "other ATen"
+TIME_PARTS = (
+    ("matrix products", lambda name: name in {"aten::mm", "aten::bmm", "aten::addmm", "aten::baddbmm",
+                                              "aten::addbmm", "aten::addmv", "aten::mv", "aten::dot"}),
+    ("inductor kernels", lambda name: name.startswith("## Call CompiledFxGraph")),
+    ("optimiser steps", lambda name: name.startswith(("Optimizer.", "aten::_fused_adam"))),
+    ("dynamo guards", lambda name: name == "TorchDynamo Cache Lookup"),
+    ("other ATen", lambda name: name.startswith("aten::")),
+)
+
+
+def split_time(self_us: dict[str, float], wall_us: float, calls: int) -> dict[str, float]:
+    """Milliseconds per call of each of :data:`TIME_PARTS`, from the events' self times (µs, summed over
+    ``calls`` calls), plus ``unaccounted``: the wall time no ATen operator, kernel, optimiser or guard holds
+    (the Python code between them, autograd's engine, the profiler's own records)."""
+    parts = {part: 0.0 for part, _ in TIME_PARTS}
+    for name, us in self_us.items():
+        for part, matches in TIME_PARTS:
+            if matches(name):
+                parts[part] += us
+                break
+    parts["unaccounted"] = wall_us - sum(parts.values())
+    parts["total (wall)"] = wall_us
+    return {part: us / 1e3 / calls for part, us in parts.items()}
+
+
+def profile_update(update, calls: int, device: torch.device = torch.device("cpu")) -> dict[str, float]:
+    """:func:`split_time` of ``calls`` calls of ``update`` under ``torch.profiler`` (after one warm-up call)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    update()
+    sync()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        start = time.perf_counter()
+        for _ in range(calls):
+            update()
+        sync()
+        wall_us = 1e6 * (time.perf_counter() - start)
+    self_us = {}
+    for event in prof.key_averages():
+        self_us[event.key] = self_us.get(event.key, 0.0) + event.self_cpu_time_total
+    return split_time(self_us, wall_us, calls)
 
 
 def gemm_rate(device: torch.device = torch.device("cpu")) -> float:

@@ -1,0 +1,31 @@
+"""The benchmarks' own arithmetic (their figures are printed, never asserted on timings)."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
+import update_step  # noqa: E402
+
+
+def test_split_time_puts_each_profiled_event_in_its_part_and_leaves_the_rest_unaccounted():
+    self_us = {  # summed over 4 calls
+        "aten::mm": 400.0, "aten::bmm": 800.0, "aten::addmm": 200.0,
+        "## Call CompiledFxGraph fabc123 (path)": 600.0,
+        "Optimizer.step#Adam.step": 40.0, "aten::_fused_adam_": 80.0,
+        "TorchDynamo Cache Lookup": 120.0,
+        "aten::copy_": 60.0, "aten::nonzero": 20.0,
+        "Torch-Compiled Region: 0/0": 0.0,  # a region's self time outside its kernels: not an operator's
+    }
+    parts = update_step.split_time(self_us, wall_us=2800.0, calls=4)
+    assert parts == pytest.approx({
+        "matrix products": 1.4 / 4, "inductor kernels": 0.6 / 4, "optimiser steps": 0.12 / 4,
+        "dynamo guards": 0.12 / 4, "other ATen": 0.08 / 4,
+        "unaccounted": (2.8 - 1.4 - 0.6 - 0.12 - 0.12 - 0.08) / 4, "total (wall)": 2.8 / 4,
+    })
+
+
+def test_a_fused_adam_step_counts_as_the_optimiser_not_as_other_aten():
+    parts = update_step.split_time({"aten::_fused_adam_": 100.0, "aten::lerp_": 50.0}, 1000.0, 1)
+    assert parts["optimiser steps"] == pytest.approx(0.1) and parts["other ATen"] == pytest.approx(0.05)
