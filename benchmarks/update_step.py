@@ -105,6 +105,9 @@ def main(argv: list[str] | None = None) -> dict:
     with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
         cfg = compose(config_name="sac_silp", overrides=args.overrides)
     device = resolve_device(cfg)
+    if args.profile and device.type != "cpu":
+        # the profiler's self times would be the host's kernel launches, not the device's work
+        parser.error(f"--profile splits the update's CPU time; device={device.type} runs it elsewhere")
     model = make_model(cfg, device)
     env = make_env(cfg, model, device, seed=0)
     actor, critic = make_actor_critic(cfg, model, env, device)

@@ -29,3 +29,17 @@ def test_split_time_puts_each_profiled_event_in_its_part_and_leaves_the_rest_una
 def test_a_fused_adam_step_counts_as_the_optimiser_not_as_other_aten():
     parts = update_step.split_time({"aten::_fused_adam_": 100.0, "aten::lerp_": 50.0}, 1000.0, 1)
     assert parts["optimiser steps"] == pytest.approx(0.1) and parts["other ATen"] == pytest.approx(0.05)
+
+
+def test_profile_on_a_device_other_than_the_cpu_is_refused_before_anything_is_built(monkeypatch, capsys):
+    import torch
+
+    monkeypatch.setattr(update_step, "resolve_device", lambda cfg: torch.device("cuda"))
+
+    def build(*args, **kwargs):
+        raise AssertionError("built the model before refusing --profile")
+
+    monkeypatch.setattr(update_step, "make_model", build)
+    with pytest.raises(SystemExit):
+        update_step.main(["--profile", "3"])
+    assert "--profile splits the update's CPU time; device=cuda" in capsys.readouterr().err
