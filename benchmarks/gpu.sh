@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The GPU figures in one short run: env throughput at B = 16384 and 65536, one update
 # eager and compiled (default mode and reduce-overhead, i.e. CUDA graphs), the planner at B = 1024
-# episodes, and the main job until its validation success reaches 0.95 (or a wall-time cap).
+# episodes, and the main job until its validation success reaches 0.95 (or a wall-time cap);
+# `graphs`: the update captured whole in a CUDA graph (compile.cudagraphs), SAC-SILP+ and plain SAC.
 #
-#   bash benchmarks/gpu.sh [bench|main|all]     # figures land in $OUT (default gpu_out/), one file per part
+#   bash benchmarks/gpu.sh [bench|main|graphs|all]   # figures land in $OUT (default gpu_out/), one file per part
 #   DEVICE=cpu LIMIT_PERCENT=10 bash benchmarks/gpu.sh bench   # the script's own dry run, on the CPU
 #
 # Each part has its own time limit so that one slow part cannot eat the others' time; what a part
@@ -56,6 +57,12 @@ if [ "$PART" = bench ] || [ "$PART" = all ]; then
         compile.compile_mode=reduce-overhead
     run planner 60 $PY benchmarks/planner.py --device $DEVICE --quick --batch-sizes 1024 --sweep-batch 1024 \
         --rollouts scripted --d-values 0.15
+fi
+if [ "$PART" = graphs ] || [ "$PART" = all ]; then
+    run update_step_graphed 100 $PY benchmarks/update_step.py --reps 30 device=$DEVICE \
+        compile.cudagraphs=true silp.demo_rows=mask
+    run update_step_graphed_sac 60 $PY benchmarks/update_step.py --reps 30 device=$DEVICE \
+        compile.cudagraphs=true method=sac
 fi
 if [ "$PART" = main ] || [ "$PART" = all ]; then
     run time_to_success 250 $PY benchmarks/time_to_success.py --seed 0 device=$DEVICE max_train_wall_s=180

@@ -63,6 +63,7 @@ class SILPConfig:
     lambda1: float = 1.0
     lambda2: float = 20.0
     k: int = 1
+    demo_rows: str = "select"
 
 
 @dataclass
@@ -111,6 +112,8 @@ class CheckpointConfig:
 class CompileConfig:
     compile: bool = True
     compile_mode: Optional[str] = None
+    cudagraphs: bool = False
+    warmup: int = 5
 
 
 @dataclass

@@ -94,6 +94,22 @@ def _dotted(tree, field: str):
     return tree
 
 
+def check_compile(cfg, device: torch.device) -> None:
+    """Refuses a ``cfg.compile`` that cannot run on ``device``, naming the field."""
+    comp = cfg.get("compile")
+    if comp is None or not comp.get("cudagraphs", False):
+        return
+    if device.type != "cuda":
+        raise ValueError(f"compile.cudagraphs captures the update in a CUDA graph: it needs device=cuda, "
+                         f"but the run's device is {device.type}")
+    if comp.get("compile_mode") == "reduce-overhead":
+        raise ValueError("compile.cudagraphs and compile.compile_mode=reduce-overhead both capture CUDA graphs: "
+                         "choose one")
+    if cfg.silp.bc and cfg.silp.demo_rows != "mask":
+        raise ValueError(f"compile.cudagraphs needs fixed shapes: set silp.demo_rows=mask (got "
+                         f"{cfg.silp.demo_rows!r}, whose demo rows are a shape that depends on the batch)")
+
+
 def resolve_device(cfg) -> torch.device:
     """``cfg.device`` checked and resolved ("auto": CUDA when there is one)."""
     check_device(cfg.device)
@@ -110,6 +126,7 @@ def start_run(cfg) -> tuple[torch.device, Path]:
     run's networks from its checkpoint (``load_trained_networks``) and what a report cites.
     """
     device = resolve_device(cfg)
+    check_compile(cfg, device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -292,6 +309,7 @@ def make_loss(cfg, actor, critic, model, env):
     loss = SILPLoss(
         rl, model, filter=cfg.silp.filter, lambda1=cfg.silp.lambda1, lambda2=cfg.silp.lambda2, k=cfg.silp.k,
         gamma=cfg.optim.gamma, observation_transform=make_observation_transform(cfg, model),
+        demo_rows=cfg.silp.demo_rows,
     )
     return loss, updater
 
@@ -304,13 +322,15 @@ def make_optimizers(cfg, loss) -> dict[str, optim.Optimizer]:
     rl = rl_loss_of(loss)
     actor_params = list(rl.actor_network_params.flatten_keys().values())
     critic_params = rl.qvalue_network_params if hasattr(rl, "qvalue_network_params") else rl.value_network_params
-    # fused: one ATen kernel per optimiser step, outside the compiled forward and backward
+    # fused: one ATen kernel per optimiser step, outside the compiled forward and backward;
+    # capturable (step counts on the device) when a CUDA graph replays the steps
+    adam = dict(lr=cfg.optim.lr, fused=True, capturable=bool(cfg.compile.get("cudagraphs", False)))
     opts = {
-        "actor": optim.Adam(actor_params, lr=cfg.optim.lr, fused=True),
-        "critic": optim.Adam(list(critic_params.flatten_keys().values()), lr=cfg.optim.lr, fused=True),
+        "actor": optim.Adam(actor_params, **adam),
+        "critic": optim.Adam(list(critic_params.flatten_keys().values()), **adam),
     }
     if cfg.algorithm == "sac":
-        opts["alpha"] = optim.Adam([rl.log_alpha], lr=cfg.optim.lr, fused=True)
+        opts["alpha"] = optim.Adam([rl.log_alpha], **adam)
     return opts
 
 
@@ -355,9 +375,52 @@ def compile_update(cfg, gradient_step):
     """``gradient_step`` compiled with ``torch.compile`` when ``cfg.compile.compile`` (TorchRL's SOTA recipes'
     switch), else itself: of a :class:`GradientStep`, its forward and backward; any other callable whole.
     A first call whose compilation fails (e.g. no C++ compiler for inductor's CPU code) warns and runs
-    eagerly from then on."""
-    if not cfg.compile.compile:
-        return gradient_step
+    eagerly from then on.
+
+    With ``cfg.compile.cudagraphs`` the whole step (forward, backward, the optimisers' steps and the target
+    update) is then captured in a CUDA graph by tensordict's ``CudaGraphModule``, as TorchRL's SOTA recipes
+    do, and replayed on each call after ``cfg.compile.warmup`` warm-up calls; a capture that fails warns
+    and the step runs uncaptured from then on (:func:`check_compile` has refused what cannot work)."""
+    step = _compile_forward_backward(cfg, gradient_step) if cfg.compile.compile else gradient_step
+    if not cfg.compile.get("cudagraphs", False):
+        return step
+    return _capture_cuda_graph(step, cfg.compile.warmup)
+
+
+def _capture_cuda_graph(step, warmup: int):
+    from tensordict.nn import CudaGraphModule
+
+    done = []  # the outputs of the step's own runs during the capturing call
+
+    def counted(sample):
+        out = step(sample)
+        done.append(out)
+        return out
+
+    graphed = CudaGraphModule(counted, in_keys=[], out_keys=[], warmup=warmup)
+    chosen = []
+
+    def call(sample):
+        if chosen:
+            return chosen[0](sample)
+        if graphed.counter < warmup - 1:  # a warm-up call: the step runs as itself
+            return graphed(sample)
+        done.clear()
+        try:
+            out = graphed(sample)  # one run of the step, then its capture (recorded, not run)
+            chosen.append(graphed)
+        except Exception as err:  # noqa: BLE001 - a failed capture ran none of what it recorded
+            warnings.warn(f"compile.cudagraphs: the capture failed ({type(err).__name__}: {str(err)[:300]}); "
+                          "the update runs without a CUDA graph")
+            chosen.append(step)
+            # the batch's update ran before the capture began: not again
+            out = done[0] if done else step(sample)
+        return out
+
+    return call
+
+
+def _compile_forward_backward(cfg, gradient_step):
     part = gradient_step.forward_backward if isinstance(gradient_step, GradientStep) else gradient_step
     compiled = torch.compile(part, mode=cfg.compile.compile_mode)
     chosen = []

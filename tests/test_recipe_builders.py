@@ -304,3 +304,56 @@ def test_a_failing_compilation_falls_back_on_the_eager_step(monkeypatch):
         assert step(1) == 1
     assert step(2) == 2 and calls == [1, 2]
     assert utils.compile_update(config(*TINY, "compile.compile=false"), abs) is abs
+
+
+def test_cudagraphs_is_refused_where_it_cannot_run_naming_the_field():
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    with pytest.raises(ValueError, match="compile.cudagraphs captures the update in a CUDA graph: it needs device=cuda"):
+        utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask"), cpu)
+    with pytest.raises(ValueError, match="set silp.demo_rows=mask \\(got 'select'"):
+        utils.check_compile(config("compile.cudagraphs=true"), cuda)
+    with pytest.raises(ValueError, match="reduce-overhead both capture CUDA graphs"):
+        utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask",
+                                   "compile.compile_mode=reduce-overhead"), cuda)
+    # what can run: fixed shapes on CUDA, and plain SAC, which has no BC term
+    utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask"), cuda)
+    utils.check_compile(config("compile.cudagraphs=true", "method=sac"), cuda)
+    # and start_run refuses before it writes anything
+    with pytest.raises(ValueError, match="needs device=cuda"):
+        utils.start_run(config("compile.cudagraphs=true", "silp.demo_rows=mask", "run_dir=/nonexistent/never"))
+    assert not Path("/nonexistent/never").exists()
+
+
+def test_cudagraphs_makes_the_optimisers_capturable():
+    cfg = config(*TINY, "network.hidden_sizes=[32,32]", "compile.cudagraphs=true", "silp.demo_rows=mask")
+    _, _, step = _gradient_step_setup(cfg)
+    assert {name: opt.defaults["capturable"] for name, opt in step.optimizers.items()} == {
+        "actor": True, "critic": True, "alpha": True}
+    _, _, step = _gradient_step_setup(config(*TINY, "network.hidden_sizes=[32,32]"))
+    assert not any(opt.defaults["capturable"] for opt in step.optimizers.values())
+
+
+def test_a_failed_cuda_graph_capture_runs_every_batch_s_update_once(monkeypatch):
+    """A capture that fails after CudaGraphModule's run of the step: that batch is not updated twice."""
+    import tensordict.nn
+
+    class CaptureFails:  # CudaGraphModule's calls: warmup - 1 runs, then a run and the capture, which fails here
+        def __init__(self, module, in_keys, out_keys, warmup):
+            self.module, self.warmup, self.counter = module, warmup, 0
+
+        def __call__(self, sample):
+            if self.counter < self.warmup - 1:
+                self.counter += 1
+                return self.module(sample)
+            self.module(sample)
+            raise RuntimeError("operation not permitted when stream is capturing")
+
+    monkeypatch.setattr(tensordict.nn, "CudaGraphModule", CaptureFails)
+    calls = []
+    cfg = config(*TINY, "compile.cudagraphs=true", "compile.warmup=3")
+    step = utils.compile_update(cfg, lambda sample: calls.append(sample) or -sample)
+    assert [step(1), step(2)] == [-1, -2]
+    with pytest.warns(UserWarning, match="compile.cudagraphs: the capture failed .*not permitted.*without a CUDA graph"):
+        assert step(3) == -3
+    assert [step(4), step(5)] == [-4, -5]
+    assert calls == [1, 2, 3, 4, 5]

@@ -2,6 +2,8 @@
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
@@ -139,14 +141,15 @@ def hand_bc(model, loss, actor, data, filt, k, gamma, lambda2):
     return lambda2 * total / demos, passed, returns
 
 
+@pytest.mark.parametrize("demo_rows", ["select", "mask"])
 @pytest.mark.parametrize(
     "kind,filt,k",
     [("ddpg", "reward", 1), ("ddpg", "reward", 2), ("sac", "reward", 2), ("ddpg", "q", 1), ("sac", "q", 1)],
 )
-def test_bc_term_matches_hand_computation(model, kind, filt, k):
+def test_bc_term_matches_hand_computation(model, kind, filt, k, demo_rows):
     rl_loss, actor = make_loss(kind)
     gamma = 0.9
-    silp = SILPLoss(rl_loss, model, filter=filt, k=k, gamma=gamma, lambda1=0.5, lambda2=3.0)
+    silp = SILPLoss(rl_loss, model, filter=filt, k=k, gamma=gamma, lambda1=0.5, lambda2=3.0, demo_rows=demo_rows)
     # a batch on which every case below sees demos both pass and fail the filter
     data = make_batch(model, seed=5)
     want, passed, returns = hand_bc(model, rl_loss, actor, data, filt, k, gamma, 3.0)
@@ -168,6 +171,28 @@ def test_bc_term_matches_hand_computation(model, kind, filt, k):
         torch.testing.assert_close(silp.lookahead_returns(moved, pi)[0], r_demo)
     assert float(meta["num_demos"]) == sum(IS_DEMO)
     torch.testing.assert_close(meta["bc_filter_fraction"], torch.tensor(sum(passed) / len(passed)))
+
+
+@settings(max_examples=15, deadline=None)
+@given(demos=st.lists(st.booleans(), min_size=N, max_size=N).filter(any), seed=st.integers(0, 50))
+def test_both_ways_to_the_demo_rows_give_the_hand_computed_term_and_the_same_actor_gradient(model, demos, seed):
+    rl_loss, actor = make_loss("ddpg")
+    data = make_batch(model, seed=seed, demos=demos)
+    want, passed, _ = hand_bc(model, rl_loss, actor, data, "reward", 1, 0.9, 2.0)
+    grads = {}
+    for demo_rows in ("select", "mask"):
+        silp = SILPLoss(rl_loss, model, filter="reward", gamma=0.9, lambda2=2.0, demo_rows=demo_rows)
+        loss_bc, meta = silp.bc_loss(data.clone())
+        torch.testing.assert_close(loss_bc, torch.tensor(want), rtol=1e-5, atol=1e-6)
+        assert float(meta["num_demos"]) == sum(demos)
+        torch.testing.assert_close(meta["bc_filter_fraction"], torch.tensor(sum(passed) / len(passed)))
+        for p in rl_loss.actor_network_params.values(True, True):
+            p.grad = None
+        loss_bc.backward()
+        grads[demo_rows] = [g.clone() for g in _grads(rl_loss.actor_network_params) if g is not None]
+    assert len(grads["select"]) == len(grads["mask"]) > 0
+    for a, b in zip(grads["select"], grads["mask"]):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
 
 
 def test_reward_filter_discounts_with_the_wrapped_loss_gamma(model):
@@ -225,10 +250,11 @@ def test_bc_gradient_reaches_actor_only(model, kind, filt):
         assert rl_loss.log_alpha.grad is None
 
 
+@pytest.mark.parametrize("demo_rows", ["select", "mask"])
 @pytest.mark.parametrize("filt", ["reward", "q", "none"])
-def test_demo_free_batch_gives_zero(model, filt):
+def test_demo_free_batch_gives_zero(model, filt, demo_rows):
     rl_loss, _ = make_loss("sac")
-    silp = SILPLoss(rl_loss, model, filter=filt)
+    silp = SILPLoss(rl_loss, model, filter=filt, demo_rows=demo_rows)
     SoftUpdate(silp.rl_loss, tau=0.01)
     data = make_batch(model, demos=[False] * N)
     out = silp(data)
@@ -327,6 +353,7 @@ def test_lambdas_are_schedulable(model):
         (dict(filter="none", lambda1=-1.0), "lambda1"),
         (dict(filter="none", lambda2=float("nan")), "lambda2"),
         (dict(filter="none", gamma=1.5), "gamma"),
+        (dict(filter="none", demo_rows="all"), "demo_rows must be one of"),
     ],
 )
 def test_bad_configuration_raises(kwargs, match):

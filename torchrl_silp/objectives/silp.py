@@ -14,9 +14,10 @@ from torchrl.objectives import LossModule
 
 from torchrl_silp.models.base import as_model
 
-__all__ = ["SILPLoss", "BC_FILTERS"]
+__all__ = ["SILPLoss", "BC_FILTERS", "DEMO_ROWS"]
 
 BC_FILTERS = ("reward", "q", "none")
+DEMO_ROWS = ("select", "mask")
 
 _DIAGNOSTICS = ("bc_filter_fraction", "bc_mse", "num_demos")
 
@@ -91,6 +92,13 @@ class SILPLoss(LossModule):
         observation_transform: builds the actor's inputs (``"observation"``, ...) from a
             named state during the look-ahead, as the env's transforms do; the model's
             :class:`~torchrl.envs.CatTensors` by default.
+        demo_rows: how the BC term finds the demonstration rows. ``"select"``
+            (default) gathers them (``nonzero``: one host sync and a shape that
+            depends on the data), so the actor and the filter run on those rows
+            only. ``"mask"`` runs them on every row and zeroes the others: every
+            shape is fixed by the batch's, as CUDA graphs (and a compiled update
+            without a graph break) need, at ``batch / N_D`` times the term's work.
+            Both give the same loss, gradients and diagnostics.
 
     Examples:
         >>> import torch
@@ -160,6 +168,7 @@ class SILPLoss(LossModule):
         k: int = 1,
         gamma: float | None = None,
         observation_transform=None,
+        demo_rows: str = "select",
     ):
         if not isinstance(loss_module, LossModule):
             raise TypeError(f"loss_module must be a torchrl LossModule, got {type(loss_module).__name__}")
@@ -175,6 +184,8 @@ class SILPLoss(LossModule):
             )
         if filter not in BC_FILTERS:
             raise ValueError(f"filter must be one of {BC_FILTERS}, got {filter!r}")
+        if demo_rows not in DEMO_ROWS:
+            raise ValueError(f"demo_rows must be one of {DEMO_ROWS}, got {demo_rows!r}")
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(f"k must be an int >= 1 (look-ahead steps), got {k!r}")
         for name, value in (("lambda1", lambda1), ("lambda2", lambda2)):
@@ -199,6 +210,7 @@ class SILPLoss(LossModule):
             observation_transform = model.observation_transform()
         self.observation_transform = observation_transform
         self.filter = filter
+        self.demo_rows = demo_rows
         self.k = k
         self._gamma = None if gamma is None else float(gamma)
         device = next(iter(loss_module.parameters()), torch.empty(0)).device
@@ -419,19 +431,25 @@ class SILPLoss(LossModule):
         if is_demo.dtype != torch.bool:
             raise TypeError(f"{keys.is_demo!r} must be a bool tensor, got {is_demo.dtype}")
         is_demo = is_demo.reshape(n)
-        # only the demo rows need the actor's action and the filter's look-ahead:
-        # at our default N_D / (N_D + N_pi) = 1/4 (the paper does not state it) that is 4x less model work than
-        # masking a full batch (one host sync for the row count)
-        rows = is_demo.nonzero().squeeze(-1)
-        if rows.numel() == 0:
-            zero = torch.zeros((), dtype=a_demo.dtype, device=a_demo.device)
-            return zero, {"bc_filter_fraction": zero, "bc_mse": zero, "num_demos": zero}
-        demos = td[rows]
-        pi = self._policy_action(demos)
-        sq_err = (pi - demos.get(keys.action).detach()).pow(2).sum(-1)
-        passed = self.bc_filter(demos, pi)
+        if self.demo_rows == "select":
+            # only the demo rows need the actor's action and the filter's look-ahead:
+            # at our default N_D / (N_D + N_pi) = 1/4 (the paper does not state it) that is 4x less model work than
+            # masking a full batch (one host sync for the row count)
+            rows = is_demo.nonzero().squeeze(-1)
+            if rows.numel() == 0:
+                zero = torch.zeros((), dtype=a_demo.dtype, device=a_demo.device)
+                return zero, {"bc_filter_fraction": zero, "bc_mse": zero, "num_demos": zero}
+            demos = td[rows]
+            pi = self._policy_action(demos)
+            sq_err = (pi - demos.get(keys.action).detach()).pow(2).sum(-1)
+            passed = self.bc_filter(demos, pi)
+            num_demos = torch.tensor(float(rows.numel()), dtype=sq_err.dtype, device=sq_err.device)
+        else:  # every row, the non-demo ones zeroed: no host sync, no shape that depends on the data
+            pi = self._policy_action(td)
+            sq_err = torch.where(is_demo, (pi - a_demo.detach()).pow(2).sum(-1), 0.0)
+            passed = self.bc_filter(td, pi) & is_demo
+            num_demos = is_demo.sum().to(sq_err.dtype)
         zero = torch.zeros((), dtype=sq_err.dtype, device=sq_err.device)
-        num_demos = torch.tensor(float(rows.numel()), dtype=sq_err.dtype, device=sq_err.device)
         denom = num_demos.clamp_min(1.0)
         loss_bc = self.lambda2.to(sq_err.dtype) * torch.where(passed, sq_err, zero).sum() / denom
         with torch.no_grad():
