@@ -99,6 +99,8 @@ def main(argv: list[str] | None = None) -> dict:
                         help="profile N compiled updates and print where their time goes")
     parser.add_argument("overrides", nargs="*", help="hydra overrides of recipes/config/sac_silp.yaml")
     args = parser.parse_args(argv)
+    if args.profile < 0:
+        parser.error(f"--profile must be a number of updates >= 0 (0: no profile), got {args.profile}")
     load = os.getloadavg()[0]  # before this benchmark's own work counts in it
     if args.threads:
         torch.set_num_threads(args.threads)

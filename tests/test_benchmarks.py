@@ -43,3 +43,9 @@ def test_profile_on_a_device_other_than_the_cpu_is_refused_before_anything_is_bu
     with pytest.raises(SystemExit):
         update_step.main(["--profile", "3"])
     assert "--profile splits the update's CPU time; device=cuda" in capsys.readouterr().err
+
+
+def test_a_negative_profile_count_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        update_step.main(["--profile", "-3"])
+    assert "--profile must be a number of updates >= 0" in capsys.readouterr().err
