@@ -50,7 +50,7 @@ RECIPES = Path(__file__).parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
 import schema  # noqa: E402
 from utils import (  # noqa: E402
-    compile_update, make_actor_critic, make_buffers, make_env, make_gradient_step, make_loss, make_model,
+    check_compile, compile_update, make_actor_critic, make_buffers, make_env, make_gradient_step, make_loss, make_model,
     make_optimizers, resolve_device,
 )
 
@@ -107,6 +107,7 @@ def main(argv: list[str] | None = None) -> dict:
     with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
         cfg = compose(config_name="sac_silp", overrides=args.overrides)
     device = resolve_device(cfg)
+    check_compile(cfg, device)  # as the recipe's start_run does
     if args.profile and device.type != "cpu":
         # the profiler's self times would be the host's kernel launches, not the device's work
         parser.error(f"--profile splits the update's CPU time; device={device.type} runs it elsewhere")

@@ -49,3 +49,8 @@ def test_a_negative_profile_count_is_refused(capsys):
     with pytest.raises(SystemExit):
         update_step.main(["--profile", "-3"])
     assert "--profile must be a number of updates >= 0" in capsys.readouterr().err
+
+
+def test_the_benchmark_refuses_a_cuda_graph_off_cuda_as_the_recipe_does():
+    with pytest.raises(ValueError, match="compile.cudagraphs captures the update in a CUDA graph: it needs device=cuda"):
+        update_step.main(["compile.cudagraphs=true", "silp.demo_rows=mask", "device=cpu"])
