@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> dict:
           f"{'device' if device.type == 'cuda' else 'core'}'s 256^3 rate)")
     if args.profile:
         update = compiled_update[-1] if compiled_update else (lambda: gradient_step(batch))
-        figures["profile"] = profile_update(update, args.profile, device)
+        figures["profile"] = profile_update(update, args.profile)
         print(f"where the {'compiled' if compiled_update else 'eager'} update's time goes "
               f"(torch.profiler, {args.profile} updates, self time per update):")
         for part, ms in figures["profile"].items():
@@ -213,18 +213,15 @@ def split_time(self_us: dict[str, float], wall_us: float, calls: int) -> dict[st
     return {part: us / 1e3 / calls for part, us in parts.items()}
 
 
-def profile_update(update, calls: int, device: torch.device = torch.device("cpu")) -> dict[str, float]:
-    """:func:`split_time` of ``calls`` calls of ``update`` under ``torch.profiler`` (after one warm-up call)."""
+def profile_update(update, calls: int) -> dict[str, float]:
+    """:func:`split_time` of ``calls`` calls of a CPU ``update`` under ``torch.profiler`` (after one warm-up call)."""
     from torch.profiler import ProfilerActivity, profile
 
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     update()
-    sync()
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         start = time.perf_counter()
         for _ in range(calls):
             update()
-        sync()
         wall_us = 1e6 * (time.perf_counter() - start)
     self_us = {}
     for event in prof.key_averages():
