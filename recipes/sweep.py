@@ -9,9 +9,10 @@
 
 The methods, the recipe each one runs and its config overrides are the registry
 of ``recipes/config/sweep.yaml``. Each run composes its recipe's config with
-hydra's compose API (its registry overrides, ``overrides.all``,
-``overrides.<recipe>``, then ``seed=<k> run_dir=<results_dir>/<method>/seed<k>
-resume=true``, plus ``device=cuda`` when it reserves a GPU), calls the recipe's
+hydra's compose API (``overrides.all``, ``overrides.<recipe>``, then its
+registry overrides, so that a method's own setting wins over the grid's, then
+``seed=<k> run_dir=<results_dir>/<method>/seed<k> resume=true``, plus
+``device=cuda`` when it reserves a GPU), calls the recipe's
 function with it and writes its stdout/stderr to ``<run_dir>/run.log`` and what
 ran where to ``<run_dir>/sweep.json``.
 
@@ -101,8 +102,8 @@ def config_context():
             yield
 
 
-def load_config(overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
-    """The sweep's config (``recipes/config/sweep.yaml``) with hydra overrides, outside ``@hydra.main``.
+def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = "sweep") -> DictConfig:
+    """A sweep's config (``recipes/config/<config_name>.yaml``) with hydra overrides, outside ``@hydra.main``.
 
     Examples:
         >>> cfg = load_config(["methods=[sac]", "seeds=[0]"])
@@ -110,7 +111,7 @@ def load_config(overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
         ['sac/seed0']
     """
     with config_context():
-        return compose("sweep", overrides=list(overrides))
+        return compose(config_name, overrides=list(overrides))
 
 
 def _plain(value):
@@ -178,7 +179,7 @@ def plan(cfg: DictConfig, check_configs: bool = True) -> list[Run]:
         recipe = recipes[entry.recipe]
         run_dir = results_dir / method / f"seed{seed}"
         own = [o.replace("{results_dir}", str(results_dir)).replace("{seed}", str(seed)) for o in entry.get("overrides", [])]
-        overrides = [*own, *cfg.overrides.get("all", []), *cfg.overrides.get(entry.recipe, []),
+        overrides = [*cfg.overrides.get("all", []), *cfg.overrides.get(entry.recipe, []), *own,
                      f"seed={seed}", f"run_dir={run_dir}", "++resume=true"]
         if gpus > 0:
             overrides.append("++device=cuda")

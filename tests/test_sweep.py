@@ -168,3 +168,34 @@ def test_sweep_report_and_restart(tmp_path, capsys):
         assert not (tmp_path / "failing" / "bc_sac_silp_plus").exists()
     finally:
         ray.shutdown()
+
+
+# what defines a run's task and budget, for each recipe's config (a key a config lacks is skipped)
+RUN_DEFINING_KEYS = ("env.name", "collector.total_frames", "collector.total_episodes",
+                     "env.collision_type", "planner.d", "silp.filter", "exploration.mode", "n_demos",
+                     "optim.n_updates", "budget_s", "source", "eval.n_tasks", "eval.test_seed")
+
+
+@pytest.mark.parametrize("config_name", ["sweep", "sweep_ablations", "sweep_tasks"])
+def test_each_grid_started_again_composes_its_committed_runs(config_name):
+    """A grid whose runs are committed composes, for each method's seed 0, the task and budget of that run's
+    config.yaml: the sweep's grid-wide overrides do not overrule a method's own (the Panda runs' 300k
+    frames), and sweep_tasks does not inherit the paper's 10,000-episode budget of sweep.yaml."""
+    from hydra import compose
+    from omegaconf import OmegaConf
+
+    root = Path(__file__).parents[1]
+    results = Path(OmegaConf.load(RECIPES / "config" / f"{config_name}.yaml").get("results_dir", "results/paper_budget"))
+    cfg = sweep.load_config([f"results_dir={root / results}"], config_name=config_name)
+    runs = [run for run in sweep.plan(cfg, check_configs=False)
+            if run.seed == 0 and (run.run_dir / "config.yaml").exists() and (run.run_dir / "summary.json").exists()]
+    assert len(runs) >= 3, f"{config_name}: committed runs expected under {results}"
+    for run in runs:
+        with sweep.config_context():
+            composed = compose(run.config, overrides=list(run.overrides))
+        committed = OmegaConf.load(run.run_dir / "config.yaml")
+        missing = object()
+        for key in RUN_DEFINING_KEYS:
+            was = OmegaConf.select(committed, key, default=missing)
+            if was is not missing:
+                assert OmegaConf.select(composed, key) == was, (run.name, key)
