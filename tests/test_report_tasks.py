@@ -116,3 +116,36 @@ def test_the_page_blocks_regenerate_from_the_committed_results(name, tmp_path, m
     text = report.render(name, results, Path(f"docs/{name}_curves.png"), Path("docs/results.md"), command,
                          plot_to=tmp_path / "figure.png")  # the committed picture is left alone
     assert text in page
+
+
+def test_default_config_block_checks_the_end_of_budget_success_over_seeds(tmp_path):
+    results = tmp_path / "default_config"
+    for seed, (success, reached) in enumerate([(0.984, 300.0), (0.978, None)]):
+        run = results / "sac_silp_plus_ext" / f"seed{seed}"
+        run.mkdir(parents=True)
+        (run / "summary.json").write_text(json.dumps({
+            "success_rate": success, "frames": 160_000, "train_wall_s": 1500.0 + seed, "time_to_095_s": reached,
+            "collisions_during_training": 3000, "swept_collisions_during_training": 1500}))
+        (run / "config.yaml").write_text(yaml.safe_dump({
+            "env": {"name": "ur5e_reach"}, "collector": {"total_frames": 160_000}, "algorithm": "sac",
+            "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
+    out = tmp_path / "results.md"
+    text = report.main(["--block", "default_config", "--results", str(results), "--out", str(out)])
+    row = next(line for line in text.splitlines() if line.startswith("| ur5e_reach |"))
+    assert "0.981 (0.003)" in row and "| 2 | 160000 |" in row
+    assert "0:05:00 (1/2 reached)" in row  # the mean over the seeds that reached it
+    assert "on the validation tasks" in text
+    # two seeds of three: not yet, whatever the mean
+    assert "- does not hold (yet): the default config's test success" in text and "0.981 over 2 seed(s)" in text
+    run = results / "sac_silp_plus_ext" / "seed2"
+    run.mkdir()
+    (run / "summary.json").write_text(json.dumps({"success_rate": 0.986, "frames": 160_000, "train_wall_s": 1490.0,
+                                                  "time_to_095_s": 280.0}))
+    (run / "config.yaml").write_text((results / "sac_silp_plus_ext" / "seed0" / "config.yaml").read_text())
+    text = report.main(["--block", "default_config", "--results", str(results), "--out", str(out)])
+    assert f"- holds: the default config's test success" in text and f"{np.mean([0.984, 0.978, 0.986]):.3f} over 3" in text
+    assert out.read_text().count("<!-- default_config:begin -->") == 1
+    # a mean below 0.98 over 3 seeds does not hold
+    (run / "summary.json").write_text(json.dumps({"success_rate": 0.95, "frames": 160_000, "train_wall_s": 1490.0}))
+    text = report.main(["--block", "default_config", "--results", str(results), "--out", str(out)])
+    assert "- does not hold (yet): the default config's test success" in text
