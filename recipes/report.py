@@ -1159,8 +1159,8 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--block", choices=BLOCKS, default="table1",
                         help="table1-4, tableA1: the paper's tables at its budget (results/paper_budget); ablations: "
                              "ours minus one addition at a time; table1_40k: the earlier 40k-frame runs; "
-                             "tasks: SILP+ on the UR5e and Panda task models; default_config: the main job's default config "
-                             "at its own budget (results/default_config); table5: the MuJoCo transfer; "
+                             "tasks: SILP+ on the UR5e and Panda task models; default_config: the main job's "
+                             "default config at its own budget (results/default_config); table5: the MuJoCo transfer; "
                              "speed: the benchmarks' outputs (results/benchmarks)")
     parser.add_argument("--results", type=Path, default=None,
                         help="the sweep's results_dir (results/paper_budget, results/tasks, ... by --block)")
@@ -1207,8 +1207,8 @@ def render(name: str, results: Path, figure: Path, out: Path, command: str, plot
     return block(runs, results, figure, out, command, plotted, name)
 
 
-BLOCKS = ("table1", "ablations", "table2", "table3", "table4", "tableA1", "collision_net", "tasks", "default_config", "speed",
-          "table5", "pick_place", "table1_40k")
+BLOCKS = ("table1", "ablations", "table2", "table3", "table4", "tableA1", "collision_net", "tasks", "default_config",
+          "speed", "table5", "pick_place", "table1_40k")
 
 
 if __name__ == "__main__":

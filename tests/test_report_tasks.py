@@ -144,7 +144,7 @@ def test_default_config_block_checks_the_end_of_budget_success_over_seeds(tmp_pa
                                                   "time_to_095_s": 280.0}))
     (run / "config.yaml").write_text((results / "sac_silp_plus_ext" / "seed0" / "config.yaml").read_text())
     text = report.main(["--block", "default_config", "--results", str(results), "--out", str(out)])
-    assert f"- holds: the default config's test success" in text and f"{np.mean([0.984, 0.978, 0.986]):.3f} over 3" in text
+    assert "- holds: the default config's test success" in text and f"{np.mean([0.984, 0.978, 0.986]):.3f} over 3" in text
     assert out.read_text().count("<!-- default_config:begin -->") == 1
     # a mean below 0.98 over 3 seeds does not hold
     (run / "summary.json").write_text(json.dumps({"success_rate": 0.95, "frames": 160_000, "train_wall_s": 1490.0}))
