@@ -2,13 +2,14 @@
 
     python recipes/bc.py source_run_dir=results/paper_budget/sac_silp_plus/seed0 logger.exp_name=bc_sac_silp_plus
     python recipes/bc.py source=prm logger.exp_name=bc_prm
-    python recipes/bc.py source=prm resume=true   # continue a killed run; demonstrations are not collected again
+    python recipes/bc.py source=prm resume=true   # continue a killed run: the demonstrations collected are kept
 
 ``n_demos`` demonstration episodes are collected on training tasks of the task
 model ``env.name`` (seeded by ``seed``, never the test seed), from a trained
 run's evaluated actor rolled out deterministically (``source=policy``) or from
 OMPL's PRM (``source=prm``); the transitions of the successful episodes are
-kept and cached in ``run_dir/demos.pt``. A demonstration transition holds the
+kept and cached in ``run_dir/demos.pt`` (batch by batch in ``run_dir/demos_partial/``
+while they are collected, so a killed run resumes at its next batch). A demonstration transition holds the
 model's named state (root and ``"next"``), the action, what the BC actor reads
 (``utils.observation_keys``, built from the named state by
 ``utils.make_observation_transform``) and the episode's index. The recipes'
@@ -32,10 +33,11 @@ where the values are used).
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import hydra
@@ -52,7 +54,8 @@ import schema  # noqa: E402
 import utils  # noqa: E402
 
 from torchrl_silp import CollisionHandling, ReachEnv  # noqa: E402
-from torchrl_silp.baselines import collect_prm_demonstrations  # noqa: E402  (OMPL only when called)
+# OMPL is needed only when they are called
+from torchrl_silp.baselines import prm_demonstration_batches, prm_demonstration_stats  # noqa: E402
 from torchrl_silp.data import transition_keys  # noqa: E402
 from torchrl_silp.eval import episode_outcomes, evaluate  # noqa: E402
 from torchrl_silp.models.base import as_model  # noqa: E402
@@ -110,7 +113,6 @@ def load_source_policy(run_dir: Path, model, device) -> tuple[torch.nn.Module, C
     return actor, utils.make_observation_transform(source_cfg, model)
 
 
-@torch.no_grad()
 def collect_policy_demonstrations(
     policy,
     model,
@@ -128,7 +130,8 @@ def collect_policy_demonstrations(
 
     The tasks are those a batched ``ReachEnv(model, num_envs=min(n_episodes, COLLECT_BATCH),
     seed=seed)`` draws on its successive resets, run as ``evaluate`` runs a policy on the
-    test tasks (collision type 0: a collision ends the episode).
+    test tasks (collision type 0: a collision ends the episode). :func:`policy_demonstration_batches`
+    gives the same batches one at a time.
 
     Args:
         policy: reads what ``policy_transform`` builds (the model's flat observation by default).
@@ -147,51 +150,115 @@ def collect_policy_demonstrations(
         ``"is_demo"`` (True) and ``"episode"`` (the episode's index among the ``n_episodes``
         attempted); ``stats`` holds ``n_attempted``, ``n_kept``, ``n_transitions``, ``success_rate``.
     """
+    batches = list(policy_demonstration_batches(
+        policy, model, n_episodes, seed=seed, max_steps=max_steps, device=device, progress=progress,
+        policy_transform=policy_transform, observation_transform=observation_transform,
+        observation_keys=observation_keys,
+    ))
+    demos = torch.cat([d for d, _ in batches])
+    return demos, policy_demonstration_stats([b for _, b in batches], demos.shape[0])
+
+
+def policy_demonstration_batches(
+    policy,
+    model,
+    n_episodes: int,
+    *,
+    start_episode: int = 0,
+    seed: int = 0,
+    max_steps: int = 50,
+    device=None,
+    progress: bool = False,
+    policy_transform=None,
+    observation_transform=None,
+    observation_keys: Sequence[NestedKey] = ("observation",),
+) -> Iterator[tuple[TensorDictBase, dict]]:
+    """:func:`collect_policy_demonstrations` one batch of ``min(n_episodes, COLLECT_BATCH)`` tasks at a time.
+
+    The arguments are checked and the env built when this is called; the rollouts happen as the
+    iterator is consumed.
+
+    Args:
+        start_episode: the first task attempted, a multiple of the batch size below ``n_episodes``.
+            The env's resets before it are drawn and skipped, so task ``e`` is the one a
+            collection from 0 attempts as its ``e``-th: a collection cut after a batch resumes
+            at the next.
+        the others: as in :func:`collect_policy_demonstrations`.
+
+    Yields:
+        ``(demos, batch_stats)`` per batch: the batch's kept transitions (``"episode"`` is the
+        task's index in the whole collection) and ``{"n_attempted", "n_kept"}``, the input of
+        :func:`policy_demonstration_stats`.
+    """
     if isinstance(n_episodes, bool) or not isinstance(n_episodes, int) or n_episodes < 1:
         raise ValueError(f"n_episodes must be a positive int, got {n_episodes!r}")
-    model = as_model(model)
     batch = min(n_episodes, COLLECT_BATCH)
+    if (isinstance(start_episode, bool) or not isinstance(start_episode, int) or start_episode < 0
+            or start_episode >= n_episodes or start_episode % batch):
+        raise ValueError(f"start_episode must be a multiple of the batch size {batch} below n_episodes={n_episodes}, "
+                         f"got {start_episode!r}")
+    model = as_model(model)
+    base = ReachEnv(model, num_envs=batch, seed=seed, max_steps=max_steps, device=device)
     env = TransformedEnv(
-        ReachEnv(model, num_envs=batch, seed=seed, max_steps=max_steps, device=device),
+        base,
         Compose(CollisionHandling(0), model.observation_transform() if policy_transform is None else policy_transform),
     )
     build = model.observation_transform() if observation_transform is None else observation_transform
     keys = (*transition_keys(model, observation_keys), *DEMO_EXTRA_KEYS)
-    kept, attempted, n_kept = [], 0, 0
-    with tqdm.tqdm(total=n_episodes, disable=not progress, desc="demonstrations") as pbar:
-        while attempted < n_episodes:
-            _, rollout = evaluate(policy, env=env, return_rollout=True)
-            alive, success, _ = episode_outcomes(rollout)
-            take = min(batch, n_episodes - attempted)
-            success[take:] = False  # the last batch may hold more tasks than are still wanted
-            episode = torch.arange(attempted, attempted + batch, device=rollout.device)
-            rollout.set("episode", episode.unsqueeze(-1).expand(rollout.batch_size))
-            steps = rollout[alive & success.unsqueeze(-1)]  # flat, episode by episode, in time order
-            root = steps.select(*model.state_keys, "action", "episode")
-            root.set("is_demo", torch.ones(*root.batch_size, 1, dtype=torch.bool, device=root.device))
-            nxt = steps.get("next").select(*model.state_keys, "reward", "done", "terminated", "truncated")
-            root = build(root)
-            root.set("next", build(nxt))
-            kept.append(root.select(*keys))
-            attempted += take
-            n_kept += int(success.sum())
-            pbar.update(take)
-    demos = torch.cat(kept)
-    stats = {"n_attempted": attempted, "n_kept": n_kept, "n_transitions": demos.shape[0],
-             "success_rate": n_kept / attempted}
-    return demos, stats
+
+    @torch.no_grad()
+    def batches() -> Iterator[tuple[TensorDictBase, dict]]:
+        for _ in range(start_episode // batch):
+            base.sample_tasks(batch)  # what a reset of the whole batch draws
+        attempted = start_episode
+        with tqdm.tqdm(total=n_episodes, initial=start_episode, disable=not progress, desc="demonstrations") as pbar:
+            while attempted < n_episodes:
+                _, rollout = evaluate(policy, env=env, return_rollout=True)
+                alive, success, _ = episode_outcomes(rollout)
+                take = min(batch, n_episodes - attempted)
+                success[take:] = False  # the last batch may hold more tasks than are still wanted
+                episode = torch.arange(attempted, attempted + batch, device=rollout.device)
+                rollout.set("episode", episode.unsqueeze(-1).expand(rollout.batch_size))
+                steps = rollout[alive & success.unsqueeze(-1)]  # flat, episode by episode, in time order
+                root = steps.select(*model.state_keys, "action", "episode")
+                root.set("is_demo", torch.ones(*root.batch_size, 1, dtype=torch.bool, device=root.device))
+                nxt = steps.get("next").select(*model.state_keys, "reward", "done", "terminated", "truncated")
+                root = build(root)
+                root.set("next", build(nxt))
+                attempted += take
+                pbar.update(take)
+                yield root.select(*keys), {"n_attempted": take, "n_kept": int(success.sum())}
+
+    return batches()
 
 
-def collect_demonstrations(cfg: DictConfig, model, device) -> tuple[TensorDictBase, dict]:
-    """The demonstrations of ``cfg.source``: a flat TensorDict of successful transitions, and stats."""
-    common = dict(seed=cfg.seed, max_steps=cfg.env.max_steps, device=device, progress=cfg.progress,
-                  observation_transform=utils.make_observation_transform(cfg, model),
+def policy_demonstration_stats(batch_stats: Sequence[dict], n_transitions: int) -> dict:
+    """The stats of :func:`collect_policy_demonstrations` from its batches' (:func:`policy_demonstration_batches`)."""
+    attempted = sum(b["n_attempted"] for b in batch_stats)
+    kept = sum(b["n_kept"] for b in batch_stats)
+    return {"n_attempted": attempted, "n_kept": kept, "n_transitions": int(n_transitions),
+            "success_rate": kept / attempted}
+
+
+def demonstration_batches(
+    cfg: DictConfig, model, device, start_episode: int = 0
+) -> Iterator[tuple[TensorDictBase, dict]]:
+    """The demonstrations of ``cfg.source``, batch by batch from ``start_episode``: ``(demos, batch_stats)``."""
+    common = dict(start_episode=start_episode, seed=cfg.seed, max_steps=cfg.env.max_steps, device=device,
+                  progress=cfg.progress, observation_transform=utils.make_observation_transform(cfg, model),
                   observation_keys=utils.observation_keys(cfg))
     if cfg.source == "policy":
         policy, policy_transform = load_source_policy(Path(cfg.source_run_dir), model, device)
-        return collect_policy_demonstrations(policy, model, cfg.n_demos, policy_transform=policy_transform, **common)
-    demos, stats = collect_prm_demonstrations(model, cfg.n_demos, cfg.prm_budget_s, **common)
-    return demos.to(device), stats
+        return policy_demonstration_batches(policy, model, cfg.n_demos, policy_transform=policy_transform, **common)
+    return prm_demonstration_batches(model, cfg.n_demos, cfg.prm_budget_s, **common)
+
+
+def demonstration_stats(cfg: DictConfig, batch_stats: Sequence[dict], n_transitions: int, wall_s: float) -> dict:
+    """The collection's stats from its batches': those of ``collect_policy_demonstrations`` or
+    ``collect_prm_demonstrations``, by ``cfg.source``."""
+    if cfg.source == "policy":
+        return policy_demonstration_stats(batch_stats, n_transitions)
+    return prm_demonstration_stats(batch_stats, n_transitions, wall_s)
 
 
 def _collection_settings(cfg: DictConfig) -> dict:
@@ -207,6 +274,13 @@ def _collection_settings(cfg: DictConfig) -> dict:
     return out
 
 
+def _check_settings(cached: dict, settings: dict, path: Path) -> None:
+    if cached != settings:
+        differ = sorted(k for k in settings if cached.get(k) != settings[k])
+        raise ValueError(f"the demonstrations cached in {path} were collected with other {differ}: "
+                         f"{ {k: cached.get(k) for k in differ} }; resume with those or resume=false")
+
+
 def _save_atomic(obj, path: Path) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save(obj, tmp)
@@ -214,22 +288,45 @@ def _save_atomic(obj, path: Path) -> None:
 
 
 def demonstrations(cfg: DictConfig, model, run_dir: Path, device) -> dict:
-    """Cached demonstrations of a resumed run, else collected now and cached in ``run_dir/demos.pt``."""
-    path = run_dir / "demos.pt"
+    """The run's demonstrations: ``run_dir/demos.pt`` when a resumed run has it, else collected now.
+
+    The collection saves each batch to ``run_dir/demos_partial/`` as it comes, so a run killed
+    during it resumes (``resume=true``) at its next batch; the whole is then cached in
+    ``run_dir/demos.pt`` and the batches removed. ``collection_wall_s`` adds up the wall time of
+    the batches kept, whatever sitting collected them (a batch cut by the kill is not counted).
+    """
+    path, partial = run_dir / "demos.pt", run_dir / "demos_partial"
     settings = _collection_settings(cfg)
     if cfg.resume and path.exists():
         cache = torch.load(path, map_location=device, weights_only=False)
-        if cache["settings"] != settings:
-            differ = sorted(k for k in settings if cache["settings"].get(k) != settings[k])
-            raise ValueError(f"the demonstrations cached in {path} were collected with other {differ}: "
-                             f"{ {k: cache['settings'].get(k) for k in differ} }; resume with those or resume=false")
+        _check_settings(cache["settings"], settings, path)
         print(f"demonstrations: {cache['stats']['n_kept']} episodes from the cache {path}")
         return cache
-    start = time.perf_counter()
-    demos, stats = collect_demonstrations(cfg, model, device)
-    cache = {"settings": settings, "demos": demos, "stats": stats,
-             "collection_wall_s": time.perf_counter() - start}
+    if not cfg.resume:
+        shutil.rmtree(partial, ignore_errors=True)
+    parts = []
+    for file in sorted(partial.glob("batch_*.pt")):
+        parts.append(torch.load(file, map_location=device, weights_only=False))
+        _check_settings(parts[-1]["settings"], settings, file)
+    start = sum(part["stats"]["n_attempted"] for part in parts)
+    if parts:
+        print(f"demonstrations: {len(parts)} batches ({start} of {cfg.n_demos} episodes) from {partial}; "
+              f"collecting the rest")
+    if not parts or start < cfg.n_demos:
+        batches = demonstration_batches(cfg, model, device, start_episode=start)  # checks the arguments
+        partial.mkdir(exist_ok=True)
+        tick = time.perf_counter()
+        for demos, stats in batches:
+            part = {"settings": settings, "demos": demos, "stats": stats, "wall_s": time.perf_counter() - tick}
+            _save_atomic(part, partial / f"batch_{len(parts):05d}.pt")
+            parts.append(part)
+            tick = time.perf_counter()
+    demos = torch.cat([part["demos"] for part in parts])
+    wall_s = sum(part["wall_s"] for part in parts)
+    cache = {"settings": settings, "demos": demos, "collection_wall_s": wall_s,
+             "stats": demonstration_stats(cfg, [part["stats"] for part in parts], demos.shape[0], wall_s)}
     _save_atomic(cache, path)
+    shutil.rmtree(partial)
     return cache
 
 

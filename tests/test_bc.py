@@ -246,6 +246,73 @@ def test_resume_after_completion_does_not_collect_again(bc_run):
         bc.run(compose_config("bc", [*overrides, "resume=true", "network.goal_relative=false"]))
 
 
+class Killed(Exception):
+    """Stands for the kill of a run during its demonstration collection."""
+
+
+def test_a_run_killed_during_collection_resumes_at_its_next_batch(source_run, tmp_path, monkeypatch):
+    root = source_run[0]
+    monkeypatch.setattr(bc, "COLLECT_BATCH", 32)  # 100 tasks: batches of 32, 32, 32 and 4
+    real = bc.policy_demonstration_batches
+    starts: list[int] = []
+
+    def killed_after(n_batches: int | None):
+        def batches(*args, start_episode=0, **kwargs):
+            starts.append(start_episode)
+            it = real(*args, start_episode=start_episode, **kwargs)
+
+            def gen():
+                for i, item in enumerate(it):
+                    if i == n_batches:
+                        raise Killed
+                    yield item
+            return gen()
+        return batches
+
+    def config(run_dir: Path, *more: str):
+        return compose_config("bc", [*BC_TINY, f"source_run_dir={root}", f"run_dir={run_dir}", *more])
+
+    model = utils.make_model(config(tmp_path), CPU)
+    whole_dir, cut_dir = tmp_path / "whole", tmp_path / "cut"
+    whole_dir.mkdir(), cut_dir.mkdir()
+    whole = bc.demonstrations(config(whole_dir), model, whole_dir, CPU)
+
+    monkeypatch.setattr(bc, "policy_demonstration_batches", killed_after(2))
+    with pytest.raises(Killed):
+        bc.demonstrations(config(cut_dir), model, cut_dir, CPU)
+    assert sorted(f.name for f in (cut_dir / "demos_partial").iterdir()) == ["batch_00000.pt", "batch_00001.pt"]
+    assert not (cut_dir / "demos.pt").exists()
+    # other collection settings than the saved batches' are refused, naming the setting
+    with pytest.raises(ValueError, match="n_demos"):
+        bc.demonstrations(config(cut_dir, "resume=true", "n_demos=101"), model, cut_dir, CPU)
+
+    monkeypatch.setattr(bc, "policy_demonstration_batches", killed_after(None))
+    starts.clear()
+    resumed = bc.demonstrations(config(cut_dir, "resume=true"), model, cut_dir, CPU)
+    assert starts == [64]  # the two saved batches were not collected again
+    assert not (cut_dir / "demos_partial").exists()
+    # the same demonstrations and stats as the collection that was never cut, nothing lost or repeated
+    assert whole["stats"]["n_attempted"] == 100 and 0 < whole["stats"]["n_kept"] < 100
+    assert resumed["stats"] == whole["stats"] and resumed["settings"] == whole["settings"]
+    assert set(resumed["demos"].keys(True, True)) == set(whole["demos"].keys(True, True))
+    for key in whole["demos"].keys(True, True):
+        assert torch.equal(resumed["demos"][key], whole["demos"][key]), key
+    assert torch.equal(resumed["demos"]["episode"].unique(), whole["demos"]["episode"].unique())
+    saved = torch.load(cut_dir / "demos.pt", weights_only=False)
+    assert saved["stats"] == resumed["stats"] and saved["collection_wall_s"] == resumed["collection_wall_s"] > 0
+
+    # a fresh run (resume=false) drops the batches of a killed one
+    monkeypatch.setattr(bc, "policy_demonstration_batches", killed_after(1))
+    fresh_dir = tmp_path / "fresh"
+    fresh_dir.mkdir()
+    with pytest.raises(Killed):
+        bc.demonstrations(config(fresh_dir), model, fresh_dir, CPU)
+    monkeypatch.setattr(bc, "policy_demonstration_batches", killed_after(None))
+    starts.clear()
+    bc.demonstrations(config(fresh_dir), model, fresh_dir, CPU)
+    assert starts == [0]
+
+
 @pytest.mark.parametrize("override", ["n_demos=abc", "optim.lr=fast", "network.goal_relative=maybe", "seed=1.5"])
 def test_wrong_types_are_rejected_by_the_schema(override):
     # hydra wraps the schema's error of a command-line override in a ConfigCompositionException

@@ -23,6 +23,8 @@ from torchrl_silp.baselines import (  # noqa: E402
     collect_prm_demonstrations,
     evaluate_prm,
     path_to_actions,
+    prm_demonstration_batches,
+    prm_demonstration_stats,
 )
 from torchrl_silp.baselines import prm as prm_module  # noqa: E402
 from torchrl_silp.data.demo_buffer import transition_keys  # noqa: E402
@@ -358,6 +360,50 @@ def test_collected_demonstrations_of_another_task_model():
     last = torch.cat([~same, torch.tensor([True])])
     assert bool((dist[last] < 0.05).all()) and not bool((dist[~last] < 0.05).any())
     assert bool(demos["next", "terminated"][last].all()) and not bool(demos["next", "done"][~last].any())
+
+
+def test_a_collection_started_at_a_later_batch_attempts_the_same_tasks_with_the_same_seeds(monkeypatch):
+    point, seed = PointReach(2), 3
+    monkeypatch.setattr(prm_module, "_COLLECT_BATCH", 2)
+    seeds: list[int] = []
+    monkeypatch.setattr(prm_module.ou.RNG, "setSeed", staticmethod(seeds.append))  # OMPL's seed per task
+    whole = list(prm_demonstration_batches(point, 6, 0.3, seed=seed))
+    seeds_whole, seeds[:] = list(seeds), []
+    later = list(prm_demonstration_batches(point, 6, 0.3, start_episode=2, seed=seed))
+    assert len(seeds_whole) == 6 and seeds == seeds_whole[2:]
+    assert [b["n_attempted"] for _, b in whole] == [2, 2, 2] and [b["n_attempted"] for _, b in later] == [2, 2]
+    # the tasks: those of the env's 2nd and 3rd resets, by their episode's index in the whole collection
+    env = ReachEnv(point, num_envs=2, seed=seed)
+    tasks = torch.cat([env.reset().select("joint_position", "desired_goal") for _ in range(3)])
+    for demos, stats in later:
+        first = torch.cat([torch.tensor([True]), demos["episode"][1:] != demos["episode"][:-1]])
+        episodes = demos["episode"][first]
+        assert episodes.numel() == stats["n_kept"] and bool((episodes >= 2).all())
+        assert torch.equal(demos["joint_position"][first], tasks["joint_position"][episodes])
+        assert torch.equal(demos["desired_goal"][first], tasks["desired_goal"][episodes])
+    assert sum(b["n_kept"] for _, b in later) >= 3  # the gap is found in most tasks within 0.3 s
+
+
+def test_demonstration_stats_add_up_the_batches():
+    batches = [
+        {"n_attempted": 2, "n_kept": 1, "planning_times": torch.tensor([0.1, 0.2], dtype=torch.float64),
+         "solved": torch.tensor([True, False])},
+        {"n_attempted": 1, "n_kept": 1, "planning_times": torch.tensor([0.4], dtype=torch.float64),
+         "solved": torch.tensor([True])},
+    ]
+    stats = prm_demonstration_stats(batches, 17, 2.5)
+    assert stats == pytest.approx({"n_attempted": 3, "n_kept": 2, "n_transitions": 17, "success_rate": 2 / 3,
+                                   "solved_rate": 2 / 3, "planning_s": 0.7, "planning_time_max_s": 0.4, "wall_s": 2.5})
+    with pytest.raises(ValueError, match="batch_stats"):
+        prm_demonstration_stats([], 0, 0.0)
+
+
+@pytest.mark.parametrize("start_episode", [1, 6, 8, -2, 2.0, True])
+def test_a_start_episode_off_the_batches_is_refused_before_planning(model, monkeypatch, start_episode):
+    monkeypatch.setattr(prm_module, "_COLLECT_BATCH", 2)
+    monkeypatch.setattr(prm_module, "_plan_tasks", lambda *a: pytest.fail("planned before the check"))
+    with pytest.raises(ValueError, match="start_episode"):
+        prm_demonstration_batches(model, 6, 0.1, start_episode=start_episode)
 
 
 # ------------------------------------------------------------ (d) arguments

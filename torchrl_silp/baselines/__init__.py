@@ -11,6 +11,8 @@ from torchrl_silp.baselines.prm import (
     collect_prm_demonstrations,
     evaluate_prm,
     path_to_actions,
+    prm_demonstration_batches,
+    prm_demonstration_stats,
 )
 
 __all__ = [
@@ -19,4 +21,6 @@ __all__ = [
     "path_to_actions",
     "evaluate_prm",
     "collect_prm_demonstrations",
+    "prm_demonstration_batches",
+    "prm_demonstration_stats",
 ]

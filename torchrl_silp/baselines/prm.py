@@ -24,7 +24,7 @@ import contextlib
 import importlib.util
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
@@ -46,6 +46,8 @@ __all__ = [
     "path_to_actions",
     "evaluate_prm",
     "collect_prm_demonstrations",
+    "prm_demonstration_batches",
+    "prm_demonstration_stats",
 ]
 
 # training tasks planned and executed per batch in collect_prm_demonstrations
@@ -226,10 +228,24 @@ class PRMPlanner:
         out = scene.select(*model.scene_keys)
         return out.apply(lambda x: x.to(device=model.device, dtype=model.dtype) if x.is_floating_point() else x.to(model.device))
 
+    def skip(self, n_calls: int) -> None:
+        """Move the per-call seeds on as ``n_calls`` :meth:`plan` calls would, without planning.
+
+        A collection resumed at task ``n`` plans each later task with the seed
+        that the uninterrupted one would have used.
+        """
+        _check_int("n_calls", n_calls, 0)
+        if self._seeds is not None:
+            for _ in range(n_calls):
+                self._next_seed()
+
+    def _next_seed(self) -> int:
+        return int(torch.randint(1, 2**31 - 1, (1,), generator=self._seeds))
+
     def _reseed(self) -> None:
         if self._seeds is None:
             return
-        seed = int(torch.randint(1, 2**31 - 1, (1,), generator=self._seeds))
+        seed = self._next_seed()
         # OMPL complains (without cause here) when the seed changes after its first use:
         # every RNG the new planner creates draws its own seed from the re-seeded generator
         with _ompl_log_level(ou.LogLevel.LOG_NONE):
@@ -605,6 +621,9 @@ def collect_prm_demonstrations(
     demonstrations: the model's named state at the root and under ``"next"``,
     and what ``observation_transform`` writes from it on both.
 
+    :func:`prm_demonstration_batches` gives the same batches one at a time (to
+    save each as it comes, and resume a collection at its next batch).
+
     Args:
         model: the task model (or an env holding one); moved to ``device``.
         n_episodes: tasks attempted.
@@ -622,50 +641,119 @@ def collect_prm_demonstrations(
         ``"is_demo"`` (bool ``[N, 1]``, True) and ``"episode"`` (long ``[N]``: the
         attempt's index in ``0 .. n_episodes - 1``), episodes one after the
         other, steps in order, each closed by its successful, terminating step;
-        ``stats`` holds ``n_attempted``, ``n_kept`` (successful episodes),
-        ``n_transitions``, ``success_rate``, ``solved_rate``, ``planning_s``
-        (total), ``planning_time_max_s`` and ``wall_s``.
+        ``stats`` (:func:`prm_demonstration_stats`) holds ``n_attempted``,
+        ``n_kept`` (successful episodes), ``n_transitions``, ``success_rate``,
+        ``solved_rate``, ``planning_s`` (total), ``planning_time_max_s`` and ``wall_s``.
     """
-    _require_ompl("collect_prm_demonstrations")
     start = time.perf_counter()
+    batches = list(prm_demonstration_batches(
+        model, n_episodes, budget_s, seed=seed, max_steps=max_steps, device=device, progress=progress,
+        edge_step=edge_step, simplify=simplify, observation_transform=observation_transform,
+        observation_keys=observation_keys,
+    ))
+    demos = torch.cat([d for d, _ in batches])
+    return demos, prm_demonstration_stats([b for _, b in batches], demos.numel(), time.perf_counter() - start)
+
+
+def prm_demonstration_batches(
+    model: TaskModel,
+    n_episodes: int,
+    budget_s: float = 1.0,
+    *,
+    start_episode: int = 0,
+    seed: int = 0,
+    max_steps: int = 50,
+    device: torch.device | str | None = None,
+    progress: bool = False,
+    edge_step: float | None = None,
+    simplify: bool = True,
+    observation_transform=None,
+    observation_keys: Sequence[NestedKey] = ("observation",),
+) -> Iterator[tuple[TensorDict, dict]]:
+    """:func:`collect_prm_demonstrations` one batch of up to 500 tasks at a time, from ``start_episode`` on.
+
+    The arguments are checked (and the model moved) when this is called, before
+    any planning; the planning happens as the iterator is consumed.
+
+    Args:
+        start_episode: the first task attempted, a multiple of the batch size
+            (``min(n_episodes, 500)``) below ``n_episodes``. The tasks before it
+            are drawn and skipped, and OMPL's per-task seeds moved on past them,
+            so task ``e`` is the one a collection from 0 attempts as its
+            ``e``-th: a collection cut after a batch resumes at the next.
+        the others: as in :func:`collect_prm_demonstrations`.
+
+    Yields:
+        ``(demos, batch_stats)`` per batch: the batch's kept transitions (as
+        :func:`collect_prm_demonstrations` returns them: ``"episode"`` is the
+        task's index in the whole collection) and ``batch_stats``: ``n_attempted``,
+        ``n_kept``, ``planning_times`` (float64 ``[n_attempted]``, seconds) and
+        ``solved`` (bool ``[n_attempted]``: PRM found a path), the input of
+        :func:`prm_demonstration_stats`.
+    """
+    _require_ompl("prm_demonstration_batches")
     model = as_model(model)
     _check_int("n_episodes", n_episodes, 1)
     _check_int("seed", seed, 0)
     _check_int("max_steps", max_steps, 1)
     _check_bool("progress", progress)
+    batch = min(n_episodes, _COLLECT_BATCH)
+    _check_int("start_episode", start_episode, 0)
+    if start_episode >= n_episodes or start_episode % batch:
+        raise ValueError(f"start_episode must be a multiple of the batch size {batch} below n_episodes={n_episodes}, "
+                         f"got {start_episode}")
     planner = PRMPlanner(model, budget_s, seed=seed, edge_step=edge_step, simplify=simplify)
     device = _device(model, device)
     build = model.observation_transform() if observation_transform is None else observation_transform
     keys = (*transition_keys(model, observation_keys), "is_demo", "episode")
-    generator = torch.Generator(device=device).manual_seed(seed)
-    batch = min(n_episodes, _COLLECT_BATCH)
-    bar = _progress_bar(n_episodes, f"PRM-{budget_s:g} demos", progress)
-    kept, times, solved = [], [], []
-    attempted = n_kept = 0
-    try:
-        while attempted < n_episodes:
-            take = min(batch, n_episodes - attempted)
-            tasks = model.sample_tasks(batch, generator)[:take]  # what the env's next reset draws
-            paths, t = _plan_tasks(planner, tasks, take, bar)
-            demos, ok = _demonstrations(model, tasks, PathReplayPolicy(model, paths), attempted, max_steps, build)
-            kept.append(demos.select(*keys))
-            times.append(t)
-            solved.append(torch.tensor([p is not None for p in paths], dtype=torch.bool))
-            attempted += take
-            n_kept += int(ok.sum())
-    finally:
+
+    def batches() -> Iterator[tuple[TensorDict, dict]]:
+        generator = torch.Generator(device=device).manual_seed(seed)
+        for _ in range(start_episode // batch):
+            model.sample_tasks(batch, generator)
+        planner.skip(start_episode)
+        bar = _progress_bar(n_episodes, f"PRM-{budget_s:g} demos", progress)
         if bar is not None:
-            bar.close()
-    demos = torch.cat(kept)
-    times, solved = torch.cat(times), torch.cat(solved)
-    stats = {
+            bar.update(start_episode)
+        attempted = start_episode
+        try:
+            while attempted < n_episodes:
+                take = min(batch, n_episodes - attempted)
+                tasks = model.sample_tasks(batch, generator)[:take]  # what the env's next reset draws
+                paths, times = _plan_tasks(planner, tasks, take, bar)
+                demos, ok = _demonstrations(model, tasks, PathReplayPolicy(model, paths), attempted, max_steps, build)
+                solved = torch.tensor([p is not None for p in paths], dtype=torch.bool)
+                attempted += take
+                yield demos.select(*keys), {"n_attempted": take, "n_kept": int(ok.sum()),
+                                            "planning_times": times, "solved": solved}
+        finally:
+            if bar is not None:
+                bar.close()
+
+    return batches()
+
+
+def prm_demonstration_stats(batch_stats: Sequence[dict], n_transitions: int, wall_s: float) -> dict:
+    """The stats of :func:`collect_prm_demonstrations` from its batches' (:func:`prm_demonstration_batches`).
+
+    Args:
+        batch_stats: the ``batch_stats`` of every batch of the collection.
+        n_transitions: transitions kept in all.
+        wall_s: the collection's wall time, seconds.
+    """
+    if not batch_stats:
+        raise ValueError("batch_stats must hold at least one batch's stats, got none")
+    attempted = sum(b["n_attempted"] for b in batch_stats)
+    kept = sum(b["n_kept"] for b in batch_stats)
+    times = torch.cat([b["planning_times"] for b in batch_stats])
+    solved = torch.cat([b["solved"] for b in batch_stats])
+    return {
         "n_attempted": attempted,
-        "n_kept": n_kept,
-        "n_transitions": demos.numel(),
-        "success_rate": n_kept / attempted,
+        "n_kept": kept,
+        "n_transitions": int(n_transitions),
+        "success_rate": kept / attempted,
         "solved_rate": solved.float().mean().item(),
         "planning_s": times.sum().item(),
         "planning_time_max_s": times.max().item(),
-        "wall_s": time.perf_counter() - start,
+        "wall_s": float(wall_s),
     }
-    return demos, stats
