@@ -18,11 +18,12 @@ PAPER = yaml.safe_load((RECIPES / "config" / "paper_settings.yaml").read_text())
 
 
 def _run(root: Path, method: str, seed: int, success: float, collisions: int = 100, validation: float | None = None,
-         kept: list[float] | None = None, config: dict | None = None):
+         kept: list[float] | None = None, config: dict | None = None, test_collision_rate: float = 0.0):
     run = root / method / f"seed{seed}"
     run.mkdir(parents=True)
     summary = {"success_rate": success, "validation_success_rate": validation, "frames": 200_000 + seed,
-               "episodes": 10_000 + seed, "train_wall_s": 1800.0 + 60 * seed, "collisions_during_training": collisions}
+               "episodes": 10_000 + seed, "train_wall_s": 1800.0 + 60 * seed, "collisions_during_training": collisions,
+               "test_collision_rate": test_collision_rate}
     (run / "summary.json").write_text(json.dumps(summary))
     history = [{"episodes": e, "success_rate": success, "frames": 20 * e,
                 **({"bc_filter_fraction": kept[i]} if kept else {})} for i, e in enumerate((2000, 6000, 10000))]
@@ -41,12 +42,15 @@ def test_table2_rows_and_orderings(tmp_path):
               "sac_silp_plus": [0.95, 0.97, 0.96], "sac_silp_plus_collision0": [0.97, 0.98]}
     for method, successes in values.items():
         for seed, v in enumerate(successes):
-            _run(tmp_path, method, seed, v)
+            _run(tmp_path, method, seed, v, test_collision_rate=(1 - v) / (seed + 2))
     runs = report.load_results(tmp_path)
     text = report.paper_table_block(runs, "table2", tmp_path, None, tmp_path / "r.md", "cmd")
     cells = _row(text, "sac")
     assert cells[1] == "paper's" and cells[2] == f"{np.mean([0.8, 0.9]):.3f} ({np.std([0.8, 0.9]):.3f})"
-    assert cells[3] == "0.865 (0.021)" and cells[8] == "2"
+    assert cells[3] == "0.865 (0.021)" and cells[9] == "2"
+    collision = [0.2 / 2, 0.1 / 3]  # (1 - success) / (seed + 2)
+    assert cells[4] == f"{np.mean(collision):.3f} ({np.std(collision):.3f})"
+    assert _row(text, "sac_silp_plus_collision1")[4] == "—"
     assert _row(text, "sac_silp_plus_collision1")[2] == "not run"
     # SAC: type-0 (0.86) beats type-2 (0.85): does not hold; SILP+ type-1 missing: not run
     assert "- does not hold: SAC: type-2 ≥ type-0 ≥ type-1" in text
@@ -59,8 +63,8 @@ def test_table3_compares_collisions(tmp_path):
         _run(tmp_path, "sac_silp_plus", seed, 0.97, collisions=6000 + seed)
         _run(tmp_path, "sac_silp_plus_random_recovery", seed, 0.96, collisions=30000 + 10 * seed)
     text = report.paper_table_block(report.load_results(tmp_path), "table3", tmp_path, None, tmp_path / "r.md", "cmd")
-    assert _row(text, "sac_silp_plus")[6] == f"{np.mean([6000, 6001, 6002]):,.0f} ({np.std([6000, 6001, 6002]):,.0f})"
-    assert _row(text, "sac_silp_plus")[7] == "6,153"
+    assert _row(text, "sac_silp_plus")[7] == f"{np.mean([6000, 6001, 6002]):,.0f} ({np.std([6000, 6001, 6002]):,.0f})"
+    assert _row(text, "sac_silp_plus")[8] == "6,153"
     assert "- holds: GP recovery: fewer collisions during training than random recovery" in text
     assert "- holds: GP recovery: a success rate at least that of random recovery" in text
 
