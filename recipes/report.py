@@ -1087,6 +1087,29 @@ def _evaluated_on(method_runs: list[dict]) -> str:
     return " and ".join(sorted(kinds))
 
 
+def success_by_frames(method_runs: list[dict], every: int = 40_000) -> str:
+    """The runs' periodic-evaluation success (``history.json``) at every ``every`` frames and at the end:
+    per column, each run's last point at or below that many frames, mean (std) over the runs that trained
+    that far. These are the figures a budget is chosen on; the final test evaluation is not among them."""
+    ends = [max((p["frames"] for p in r["history"] if "frames" in p), default=0) for r in method_runs]
+    if not method_runs or min(ends) == 0:
+        return ""
+    columns = sorted({*range(every, max(ends) + 1, every), *ends})
+    cells = []
+    for frames in columns:
+        values = []
+        for run, end in zip(method_runs, ends):
+            if end < frames:
+                continue
+            below = [p for p in run["history"] if p.get("frames", math.inf) <= frames and "success_rate" in p]
+            if below:
+                values.append(max(below, key=lambda p: p["frames"])["success_rate"])
+        cells.append(f"{_mean_std_with(values, lambda v: f'{v:.3f}')}" + ("" if len(values) == len(method_runs)
+                                                                          else f" ({len(values)} run(s))"))
+    header = "| Frames | " + " | ".join(f"{f // 1000}k" if f % 1000 == 0 else str(f) for f in columns) + " |"
+    return "\n".join([header, "|---|" + "---:|" * len(columns), "| Success rate | " + " | ".join(cells) + " |"])
+
+
 def default_config_block(runs: dict[str, list[dict]], results: Path, command: str) -> str:
     """The main job as a user runs it (``recipes/config/sweep_default.yaml``): the speed issue's end-of-budget
     test success over seeds, and each run's time to 0.95 on the tasks its periodic evaluations read."""
@@ -1111,6 +1134,11 @@ def default_config_block(runs: dict[str, list[dict]], results: Path, command: st
         *default_config_checks(runs),
         "",
     ]
+    curve = success_by_frames(method_runs)
+    if curve:
+        lines += [f"Success on the {_evaluated_on(method_runs)} tasks during training (the periodic evaluations of "
+                  "`history.json`: each run's last one at or below the column's frames), mean (std) over seeds; the "
+                  "budget was chosen on these figures, not on the test tasks:", "", curve, ""]
     lines += provenance_lines(runs, "Budget (the runs' config.yaml):")
     lines.append(end)
     return "\n".join(lines)

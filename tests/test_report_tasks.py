@@ -150,3 +150,33 @@ def test_default_config_block_checks_the_end_of_budget_success_over_seeds(tmp_pa
     (run / "summary.json").write_text(json.dumps({"success_rate": 0.95, "frames": 160_000, "train_wall_s": 1490.0}))
     text = report.main(["--block", "default_config", "--results", str(results), "--out", str(out)])
     assert "- does not hold: the default config's test success" in text
+
+
+def test_default_config_block_gives_the_validation_success_at_every_40k_frames(tmp_path):
+    results = tmp_path / "default_config"
+    ends = [120_000, 120_000, 96_000]  # the third run stopped early: the 120k column has two runs
+    curves = []
+    for seed, end in enumerate(ends):
+        run = results / "sac_silp_plus_ext" / f"seed{seed}"
+        run.mkdir(parents=True)
+        points = [{"frames": f, "success_rate": round(0.5 + f / 400_000 + 0.01 * seed, 4)} for f in range(8000, end + 1, 8000)]
+        curves.append({p["frames"]: p["success_rate"] for p in points})
+        (run / "history.json").write_text(json.dumps({"history": points}))
+        (run / "summary.json").write_text(json.dumps({"success_rate": 0.97, "frames": end, "train_wall_s": 900.0,
+                                                      "collisions_during_training": 3000,
+                                                      "swept_collisions_during_training": 1500}))
+        (run / "config.yaml").write_text(yaml.safe_dump({
+            "env": {"name": "ur5e_reach"}, "collector": {"total_frames": 120_000}, "algorithm": "sac",
+            "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
+    text = report.main(["--block", "default_config", "--results", str(results), "--out", str(tmp_path / "r.md")])
+    lines = text.splitlines()
+    header = lines.index("| Frames | 40k | 80k | 96k | 120k |")
+    cells = [c.strip() for c in lines[header + 2].strip("|").split("|")]
+    assert cells[0] == "Success rate"
+    # 40k and 80k are history points of every run; 96k is the third run's last point; 120k has two runs
+    at = lambda f, seeds: np.array([curves[s][f] for s in seeds])
+    assert cells[1] == f"{at(40_000, [0, 1, 2]).mean():.3f} ({at(40_000, [0, 1, 2]).std():.3f})"
+    assert cells[2] == f"{at(80_000, [0, 1, 2]).mean():.3f} ({at(80_000, [0, 1, 2]).std():.3f})"
+    assert cells[3] == f"{at(96_000, [0, 1, 2]).mean():.3f} ({at(96_000, [0, 1, 2]).std():.3f})"
+    assert cells[4] == f"{at(120_000, [0, 1]).mean():.3f} ({at(120_000, [0, 1]).std():.3f}) (2 run(s))"
+    assert "Success on the validation tasks during training" in text
