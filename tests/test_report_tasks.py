@@ -180,3 +180,27 @@ def test_default_config_block_gives_the_validation_success_at_every_40k_frames(t
     assert cells[3] == f"{at(96_000, [0, 1, 2]).mean():.3f} ({at(96_000, [0, 1, 2]).std():.3f})"
     assert cells[4] == f"{at(120_000, [0, 1]).mean():.3f} ({at(120_000, [0, 1]).std():.3f}) (2 run(s))"
     assert "Success on the validation tasks during training" in text
+
+
+def test_budget_choice_block_gives_the_validation_curve_and_the_test_success_of_the_longer_runs(tmp_path):
+    results = tmp_path / "default_config_320k"
+    final = {0: 0.975, 1: 0.985}
+    for seed, test_success in final.items():
+        run = results / "sac_silp_plus_ext" / f"seed{seed}"
+        run.mkdir(parents=True)
+        points = [{"frames": f, "success_rate": 0.9 + seed * 0.02} for f in range(8000, 80_001, 8000)]
+        (run / "history.json").write_text(json.dumps({"history": points}))
+        (run / "summary.json").write_text(json.dumps({
+            "success_rate": test_success, "frames": 80_000, "train_wall_s": 600.0, "time_to_095_s": None,
+            "collisions_during_training": 100, "swept_collisions_during_training": 50}))
+        (run / "config.yaml").write_text(yaml.safe_dump({
+            "env": {"name": "ur5e_reach"}, "collector": {"total_frames": 80_000}, "algorithm": "sac",
+            "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
+    out = tmp_path / "results.md"
+    text = report.main(["--block", "budget_choice", "--results", str(results), "--out", str(out)])
+    assert "### The main job's default config at 80,000 frames: the budget choice (generated)" in text
+    assert "| Frames | 40k | 80k |" in text
+    assert "| Success rate | 0.910 (0.010) | 0.910 (0.010) |" in text  # seeds at 0.90 and 0.92 throughout
+    row = next(line for line in text.splitlines() if line.startswith("| ur5e_reach |"))
+    assert f"| {np.mean(list(final.values())):.3f} ({np.std(list(final.values())):.3f}) | 2 | 80000 |" in row
+    assert out.read_text().count("<!-- budget_choice:begin -->") == 1
