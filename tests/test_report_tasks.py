@@ -198,7 +198,7 @@ def test_budget_choice_block_gives_the_validation_curve_and_the_test_success_of_
             "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
     out = tmp_path / "results.md"
     text = report.main(["--block", "budget_choice", "--results", str(results), "--out", str(out)])
-    assert "### The main job's default config at 80,000 frames: the budget choice (generated)" in text
+    assert "### The main job's default config with a larger frame budget, 80,000 frames (generated)" in text
     assert "| Frames | 40k | 80k |" in text
     assert "| Success rate | 0.910 (0.010) | 0.910 (0.010) |" in text  # seeds at 0.90 and 0.92 throughout
     row = next(line for line in text.splitlines() if line.startswith("| ur5e_reach |"))
