@@ -1090,7 +1090,7 @@ def _evaluated_on(method_runs: list[dict]) -> str:
 def success_by_frames(method_runs: list[dict], every: int = 40_000) -> str:
     """The runs' periodic-evaluation success (``history.json``) at every ``every`` frames and at the end:
     per column, each run's last point at or below that many frames, mean (std) over the runs that trained
-    that far. These are the figures a budget is chosen on; the final test evaluation is not among them."""
+    that far. The figures a setting is chosen on; the final test evaluation is not among them."""
     ends = [max((p["frames"] for p in r["history"] if "frames" in p), default=0) for r in method_runs]
     if not method_runs or min(ends) == 0:
         return ""
@@ -1137,8 +1137,8 @@ def default_config_block(runs: dict[str, list[dict]], results: Path, command: st
     curve = success_by_frames(method_runs)
     if curve:
         lines += [f"Success on the {_evaluated_on(method_runs)} tasks during training (the periodic evaluations of "
-                  "`history.json`: each run's last one at or below the column's frames), mean (std) over seeds; the "
-                  "budget was chosen on these figures, not on the test tasks:", "", curve, ""]
+                  "`history.json`: each run's last one at or below the column's frames), mean (std) over seeds:",
+                  "", curve, ""]
     lines += provenance_lines(runs, "Budget (the runs' config.yaml):")
     lines.append(end)
     return "\n".join(lines)
