@@ -118,17 +118,25 @@ def test_the_page_blocks_regenerate_from_the_committed_results(name, tmp_path, m
     assert text in page
 
 
+def _default_config_run(results: Path, seed: int, summary: dict, total_frames: int, history=None) -> Path:
+    """A run of the main job's default config (sac_silp_plus_ext on the UR5e, validation-task evaluations)."""
+    run = results / "sac_silp_plus_ext" / f"seed{seed}"
+    run.mkdir(parents=True)
+    (run / "summary.json").write_text(json.dumps(
+        {"collisions_during_training": 3000, "swept_collisions_during_training": 1500, **summary}))
+    (run / "config.yaml").write_text(yaml.safe_dump({
+        "env": {"name": "ur5e_reach"}, "collector": {"total_frames": total_frames}, "algorithm": "sac",
+        "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
+    if history is not None:
+        (run / "history.json").write_text(json.dumps({"history": history}))
+    return run
+
+
 def test_default_config_block_checks_the_end_of_budget_success_over_seeds(tmp_path):
     results = tmp_path / "default_config"
     for seed, (success, reached) in enumerate([(0.984, 300.0), (0.978, None)]):
-        run = results / "sac_silp_plus_ext" / f"seed{seed}"
-        run.mkdir(parents=True)
-        (run / "summary.json").write_text(json.dumps({
-            "success_rate": success, "frames": 160_000, "train_wall_s": 1500.0 + seed, "time_to_095_s": reached,
-            "collisions_during_training": 3000, "swept_collisions_during_training": 1500}))
-        (run / "config.yaml").write_text(yaml.safe_dump({
-            "env": {"name": "ur5e_reach"}, "collector": {"total_frames": 160_000}, "algorithm": "sac",
-            "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
+        _default_config_run(results, seed, {"success_rate": success, "frames": 160_000,
+                                            "train_wall_s": 1500.0 + seed, "time_to_095_s": reached}, 160_000)
     out = tmp_path / "results.md"
     text = report.main(["--block", "default_config", "--results", str(results), "--out", str(out)])
     row = next(line for line in text.splitlines() if line.startswith("| ur5e_reach |"))
@@ -157,17 +165,11 @@ def test_default_config_block_gives_the_validation_success_at_every_40k_frames(t
     ends = [120_000, 120_000, 96_000]  # the third run stopped early: the 120k column has two runs
     curves = []
     for seed, end in enumerate(ends):
-        run = results / "sac_silp_plus_ext" / f"seed{seed}"
-        run.mkdir(parents=True)
-        points = [{"frames": f, "success_rate": round(0.5 + f / 400_000 + 0.01 * seed, 4)} for f in range(8000, end + 1, 8000)]
+        points = [{"frames": f, "success_rate": round(0.5 + f / 400_000 + 0.01 * seed, 4)}
+                  for f in range(8000, end + 1, 8000)]
         curves.append({p["frames"]: p["success_rate"] for p in points})
-        (run / "history.json").write_text(json.dumps({"history": points}))
-        (run / "summary.json").write_text(json.dumps({"success_rate": 0.97, "frames": end, "train_wall_s": 900.0,
-                                                      "collisions_during_training": 3000,
-                                                      "swept_collisions_during_training": 1500}))
-        (run / "config.yaml").write_text(yaml.safe_dump({
-            "env": {"name": "ur5e_reach"}, "collector": {"total_frames": 120_000}, "algorithm": "sac",
-            "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
+        _default_config_run(results, seed, {"success_rate": 0.97, "frames": end, "train_wall_s": 900.0},
+                            120_000, history=points)
     text = report.main(["--block", "default_config", "--results", str(results), "--out", str(tmp_path / "r.md")])
     lines = text.splitlines()
     header = lines.index("| Frames | 40k | 80k | 96k | 120k |")
@@ -186,16 +188,9 @@ def test_budget_choice_block_gives_the_validation_curve_and_the_test_success_of_
     results = tmp_path / "default_config_320k"
     final = {0: 0.975, 1: 0.985}
     for seed, test_success in final.items():
-        run = results / "sac_silp_plus_ext" / f"seed{seed}"
-        run.mkdir(parents=True)
         points = [{"frames": f, "success_rate": 0.9 + seed * 0.02} for f in range(8000, 80_001, 8000)]
-        (run / "history.json").write_text(json.dumps({"history": points}))
-        (run / "summary.json").write_text(json.dumps({
-            "success_rate": test_success, "frames": 80_000, "train_wall_s": 600.0, "time_to_095_s": None,
-            "collisions_during_training": 100, "swept_collisions_during_training": 50}))
-        (run / "config.yaml").write_text(yaml.safe_dump({
-            "env": {"name": "ur5e_reach"}, "collector": {"total_frames": 80_000}, "algorithm": "sac",
-            "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
+        _default_config_run(results, seed, {"success_rate": test_success, "frames": 80_000, "train_wall_s": 600.0,
+                                            "time_to_095_s": None}, 80_000, history=points)
     out = tmp_path / "results.md"
     text = report.main(["--block", "budget_choice", "--results", str(results), "--out", str(out)])
     assert "### The main job's default config with a larger frame budget, 80,000 frames (generated)" in text
