@@ -98,7 +98,11 @@ SETTING_NAMES = {  # how the Settings column names each of our additions
     "planner.insert_nodes": "equal InsertNodes", "network.goal_relative": "goal-relative input",
     "network.next_tcp_feature": "next-TCP critic input", "eval.actor_average_decay": "averaged actor",
     "optim.target_entropy": "entropy target", "exploration.mask_colliding_candidates": "masked GP candidates",
+    "silp.filter": "no BC filter",
 }
+# values of a setting that differ from paper_settings.yaml's and are still the paper's: its SILP row
+# (SAC-SILP) and Table 4 use SILP's Q-filter
+PAPER_ALTERNATIVES = {"silp.filter": ("q",)}
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict:
@@ -133,6 +137,8 @@ def _relevant(config: dict, key: str) -> bool:
         return _get(config, "exploration.mode") == "gp"
     if key == "optim.target_entropy":
         return _get(config, "algorithm") == "sac"
+    if key == "silp.filter":
+        return bool(_get(config, "silp.bc"))
     return True
 
 
@@ -150,7 +156,7 @@ def additions(config: dict | None) -> list[str] | None:
     out = []
     for key, paper in _paper_settings().items():
         value = given[key] if key in given else _schema_defaults().get(key)
-        if _relevant(config, key) and value != paper:
+        if _relevant(config, key) and value != paper and value not in PAPER_ALTERNATIVES.get(key, ()):
             out.append(SETTING_NAMES.get(key, key))
     return out
 
@@ -1150,8 +1156,9 @@ def default_config_block(runs: dict[str, list[dict]], results: Path, command: st
 # the default config run with one setting changed (recipes/config/sweep_default.yaml with an override), read on
 # the validation tasks to choose that setting: block name -> (results dir, what was changed)
 DEFAULT_CONFIG_VARIANTS = {
-    "budget_choice": ("results/default_config_320k", "a larger frame budget"),
-    "filter_choice": ("results/default_config_no_filter", "no BC filter (`silp.filter=none`)"),
+    "budget_choice": ("results/default_config_320k",
+                      "a larger frame budget and the reward filter (`silp.filter=reward`, the default when it ran)"),
+    "filter_choice": ("results/default_config_reward_filter", "the reward filter (`silp.filter=reward`, the default before)"),
 }
 
 

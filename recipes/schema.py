@@ -59,7 +59,7 @@ class PlannerConfig:
 class SILPConfig:
     demos: bool = True
     bc: bool = True
-    filter: str = "reward"
+    filter: str = "none"
     lambda1: float = 1.0
     lambda2: float = 20.0
     k: int = 1

@@ -82,14 +82,18 @@ def test_settings_name_each_addition_a_run_had_on():
     from omegaconf import OmegaConf
 
     paper = OmegaConf.to_container(OmegaConf.load(RECIPES / "config" / "paper_settings.yaml"))
-    run = {"algorithm": "sac", "silp": {"demos": True}, "exploration": {"mode": "gp"}, **paper}
+    run = {**paper, "algorithm": "sac", "silp": {**paper["silp"], "demos": True, "bc": True}}
     assert report.additions(run) == []
+    # no BC filter is ours; SILP's Q-filter is the paper's too (its SAC-SILP row, Table 4); without BC neither acts
+    assert report.additions({**run, "silp": {**run["silp"], "filter": "none"}}) == ["no BC filter"]
+    assert report.additions({**run, "silp": {**run["silp"], "filter": "q"}}) == []
+    assert report.additions({**run, "silp": {**run["silp"], "filter": "none", "bc": False}}) == []
     run["network"] = {**paper["network"], "goal_relative": True}
     run["eval"] = {"actor_average_decay": 0.99}
     assert report.additions(run) == ["goal-relative input", "averaged actor"]
     # without demonstrations the planner's settings do not act, nor the entropy target in DDPG,
     # nor the candidates' mask without the GP
-    plain = {**run, "algorithm": "ddpg", "silp": {"demos": False}, "exploration": {"mode": "random"},
+    plain = {**run, "algorithm": "ddpg", "silp": {"demos": False, "bc": False}, "exploration": {"mode": "random"},
              "planner": {"method": "exact"}, "optim": {"target_entropy": -6}}
     assert report.additions(plain) == ["goal-relative input", "averaged actor"]
     # keys an older run's config lacks take the schema's defaults (ours: equal InsertNodes, own query, masking)
@@ -193,7 +197,8 @@ def test_budget_choice_block_gives_the_validation_curve_and_the_test_success_of_
                                             "time_to_095_s": None}, 80_000, history=points)
     out = tmp_path / "results.md"
     text = report.main(["--block", "budget_choice", "--results", str(results), "--out", str(out)])
-    assert "### The main job's default config with a larger frame budget, 80,000 frames (generated)" in text
+    assert ("### The main job's default config with a larger frame budget and the reward filter "
+            "(`silp.filter=reward`, the default when it ran), 80,000 frames (generated)") in text
     assert "| Frames | 40k | 80k |" in text
     assert "| Success rate | 0.910 (0.010) | 0.910 (0.010) |" in text  # seeds at 0.90 and 0.92 throughout
     row = next(line for line in text.splitlines() if line.startswith("| ur5e_reach |"))
