@@ -1153,8 +1153,8 @@ def default_config_block(runs: dict[str, list[dict]], results: Path, command: st
     return "\n".join(lines)
 
 
-# the default config run with one setting changed (recipes/config/sweep_default.yaml with an override), read on
-# the validation tasks to choose that setting: block name -> (results dir, what was changed)
+# the runs a setting of the default config was chosen on, read on the validation tasks (recipes/config/sweep_default.yaml
+# with an override): block name -> (results dir, how their config differs from today's default)
 DEFAULT_CONFIG_VARIANTS = {
     "budget_choice": ("results/default_config_320k",
                       "a larger frame budget and the reward filter (`silp.filter=reward`, the default when it ran)"),
@@ -1163,8 +1163,8 @@ DEFAULT_CONFIG_VARIANTS = {
 
 
 def default_config_variant_block(name: str, runs: dict[str, list[dict]], results: Path, command: str) -> str:
-    """The main job's default config with one setting changed (``DEFAULT_CONFIG_VARIANTS``): the validation
-    success by frames that the setting is chosen on, and the runs' test success at their end, read once,
+    """The main job's default config with the settings of ``DEFAULT_CONFIG_VARIANTS`` changed: the validation
+    success by frames that a setting was chosen on, and the runs' test success at their end, read once,
     after the choice."""
     begin, end = markers(name)
     method_runs = runs.get(DEFAULT_CONFIG_METHOD, [])
@@ -1241,7 +1241,7 @@ def main(argv: list[str] | None = None) -> str:
                              "ours minus one addition at a time; table1_40k: the earlier 40k-frame runs; "
                              "tasks: SILP+ on the UR5e and Panda task models; default_config: the main job's "
                              "default config at its own budget (results/default_config); budget_choice, filter_choice: the "
-                             "same with one setting changed, the figures it was chosen on; table5: the MuJoCo transfer; "
+                             "earlier default config with the setting changed, the figures each was chosen on; table5: the MuJoCo transfer; "
                              "speed: the benchmarks' outputs (results/benchmarks)")
     parser.add_argument("--results", type=Path, default=None,
                         help="the sweep's results_dir (results/paper_budget, results/tasks, ... by --block)")
