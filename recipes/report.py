@@ -142,21 +142,34 @@ def _relevant(config: dict, key: str) -> bool:
     return True
 
 
+# switches added after runs were committed, each with the behaviour before it as its schema default: a run
+# config that lacks one ran with that default. Any other paper setting a config lacks is an error, since the
+# defaults of some (silp.filter) have changed since.
+SWITCHES_ADDED_LATER = ("planner.own_query", "planner.insert_nodes", "exploration.mask_colliding_candidates")
+
+
 def additions(config: dict | None) -> list[str] | None:
     """Our additions a training run's config turns on, named as in ``SETTING_NAMES``: ``[]`` is the paper's
     SILP+ as written; ``None``: not a training run (BC, PRM) or no config.
 
-    A key missing from an older run's config takes the schema's default: the keys added since
-    (``planner.own_query``, ``planner.insert_nodes``, ``exploration.mask_colliding_candidates``) were
-    introduced as switches with the behaviour before them as default.
+    A key of ``SWITCHES_ADDED_LATER`` that the config lacks takes the schema's default; any other
+    setting that acts in the run must be in its config.
     """
     if config is None or _get(config, "algorithm") is None:
         return None
     given = _flatten(config)
     out = []
     for key, paper in _paper_settings().items():
-        value = given[key] if key in given else _schema_defaults().get(key)
-        if _relevant(config, key) and value != paper and value not in PAPER_ALTERNATIVES.get(key, ()):
+        if not _relevant(config, key):
+            continue
+        if key in given:
+            value = given[key]
+        elif key in SWITCHES_ADDED_LATER:
+            value = _schema_defaults()[key]
+        else:
+            raise KeyError(f"the run's config has no {key!r}, and its value cannot be inferred: the default has "
+                           f"changed since some runs were made")
+        if value != paper and value not in PAPER_ALTERNATIVES.get(key, ()):
             out.append(SETTING_NAMES.get(key, key))
     return out
 

@@ -19,9 +19,9 @@ import utils  # noqa: E402
 from torchrl_silp.modules import NextGoalOffsetQ  # noqa: E402
 
 
-def config(*overrides: str):
+def config(*overrides: str, name: str = "sac_silp"):
     with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        return compose(config_name="sac_silp", overrides=list(overrides))
+        return compose(config_name=name, overrides=list(overrides))
 
 
 def test_critic_reads_the_goal_offset_and_the_model_next_goal():
@@ -66,6 +66,15 @@ def test_every_table1_learning_method_is_a_config():
                cfg.replay_buffer.her, cfg.replay_buffer.demo_fraction)
         assert got == flags, method
         assert cfg.logger.exp_name == method
+
+
+def test_the_ddpg_recipes_config_is_the_extended_ddpg_method():
+    # ddpg_silp.py's config holds no setting of its own: it is the main job with method=ddpg_silp_plus_ext
+    ddpg_recipe = OmegaConf.to_container(config(name="ddpg_silp"))
+    assert ddpg_recipe == OmegaConf.to_container(config("method=ddpg_silp_plus_ext"))
+    assert ddpg_recipe["algorithm"] == "ddpg" and ddpg_recipe["silp"]["filter"] == "reward"
+    # a method chosen on its command line replaces it, as for the main job
+    assert OmegaConf.to_container(config("method=ddpg", name="ddpg_silp")) == OmegaConf.to_container(config("method=ddpg"))
 
 
 # the settings where our SILP+ departs from the paper's, with the paper's value and ours (docs/paper_vs_ours.md)

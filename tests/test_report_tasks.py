@@ -96,13 +96,17 @@ def test_settings_name_each_addition_a_run_had_on():
     plain = {**run, "algorithm": "ddpg", "silp": {"demos": False, "bc": False}, "exploration": {"mode": "random"},
              "planner": {"method": "exact"}, "optim": {"target_entropy": -6}}
     assert report.additions(plain) == ["goal-relative input", "averaged actor"]
-    # keys an older run's config lacks take the schema's defaults (ours: equal InsertNodes, own query, masking)
+    # the switches an older run's config lacks take the schema's defaults (ours: equal InsertNodes, own query, masking)
     old = {k: v for k, v in run.items() if k not in ("planner", "exploration")}
     old["planner"] = {k: v for k, v in paper["planner"].items() if k not in ("insert_nodes", "own_query")}
     old["exploration"] = {"mode": "gp"}
     assert report.additions(old) == ["own query", "equal InsertNodes", "goal-relative input", "averaged actor",
                                      "masked GP candidates"]
     assert report.additions({"source": "prm"}) is None
+    # a setting whose default has changed (no BC filter since the reward filter) is never guessed
+    unknown_filter = {**run, "silp": {k: v for k, v in run["silp"].items() if k != "filter"}}
+    with pytest.raises(KeyError, match="silp.filter"):
+        report.additions(unknown_filter)
     assert report.settings_text([{"config": run}, {"config": {**run, "eval": {"actor_average_decay": None}}}]) == (
         "ours: +goal-relative input, +averaged actor; ours: +goal-relative input")
 
