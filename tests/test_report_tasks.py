@@ -126,15 +126,24 @@ def test_the_page_blocks_regenerate_from_the_committed_results(name, tmp_path, m
     assert text in page
 
 
+def _main_job_config(*overrides: str) -> dict:
+    """The resolved config the main job saves with a run, as ``recipes/sac_silp.py`` composes it."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    import schema
+
+    schema.register()
+    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
+        return OmegaConf.to_container(compose(config_name="sac_silp", overrides=list(overrides)), resolve=True)
+
+
 def _default_config_run(results: Path, seed: int, summary: dict, total_frames: int, history=None) -> Path:
     """A run of the main job's default config (sac_silp_plus_ext on the UR5e, validation-task evaluations)."""
     run = results / "sac_silp_plus_ext" / f"seed{seed}"
     run.mkdir(parents=True)
     (run / "summary.json").write_text(json.dumps(
         {"collisions_during_training": 3000, "swept_collisions_during_training": 1500, **summary}))
-    (run / "config.yaml").write_text(yaml.safe_dump({
-        "env": {"name": "ur5e_reach"}, "collector": {"total_frames": total_frames}, "algorithm": "sac",
-        "eval": {"seed": 31415926, "test_seed": 20231101, "n_tasks": 1000}, "device": "cpu", "threads": 0}))
+    (run / "config.yaml").write_text(yaml.safe_dump(_main_job_config(f"collector.total_frames={total_frames}")))
     if history is not None:
         (run / "history.json").write_text(json.dumps({"history": history}))
     return run
