@@ -1110,23 +1110,37 @@ def success_by_frames(method_runs: list[dict], every: int = 40_000) -> str:
     """The runs' periodic-evaluation success (``history.json``) at every ``every`` frames and at the end:
     per column, each run's last point at or below that many frames, mean (std) over the runs that trained
     that far. The figures a setting is chosen on; the final test evaluation is not among them."""
-    ends = [max((p["frames"] for p in r["history"] if "frames" in p), default=0) for r in method_runs]
-    if not method_runs or min(ends) == 0:
+    return success_by_frames_rows({"Success rate": method_runs}, every)
+
+
+def _history_end(run: dict) -> int:
+    return max((p["frames"] for p in run["history"] if "frames" in p), default=0)
+
+
+def success_by_frames_rows(groups: dict[str, list[dict]], every: int = 40_000, until: int | None = None) -> str:
+    """``success_by_frames`` with a row per labelled group of runs, on common columns: every ``every``
+    frames and each run's end, up to ``until`` (the end of the longest run by default)."""
+    ends = {label: [min(_history_end(r), until or math.inf) for r in runs] for label, runs in groups.items()}
+    if not groups or not all(ends.values()) or min(min(e) for e in ends.values()) == 0:
         return ""
-    columns = sorted({*range(every, max(ends) + 1, every), *ends})
-    cells = []
-    for frames in columns:
-        values = []
-        for run, end in zip(method_runs, ends):
-            if end < frames:
-                continue
-            below = [p for p in run["history"] if p.get("frames", math.inf) <= frames and "success_rate" in p]
-            if below:
-                values.append(max(below, key=lambda p: p["frames"])["success_rate"])
-        cells.append(f"{_mean_std_with(values, lambda v: f'{v:.3f}')}" + ("" if len(values) == len(method_runs)
-                                                                          else f" ({len(values)} run(s))"))
+    last = max(max(e) for e in ends.values())
+    columns = sorted({*range(every, int(last) + 1, every), *(int(e) for es in ends.values() for e in es)})
+    rows = []
+    for label, runs in groups.items():
+        cells = []
+        for frames in columns:
+            values = []
+            for run, end in zip(runs, ends[label]):
+                if end < frames:
+                    continue
+                below = [p for p in run["history"] if p.get("frames", math.inf) <= frames and "success_rate" in p]
+                if below:
+                    values.append(max(below, key=lambda p: p["frames"])["success_rate"])
+            cells.append(_mean_std_with(values, lambda v: f"{v:.3f}")
+                         + ("" if len(values) == len(runs) else f" ({len(values)} run(s))"))
+        rows.append(f"| {label} | " + " | ".join(cells) + " |")
     header = "| Frames | " + " | ".join(f"{f // 1000}k" if f % 1000 == 0 else str(f) for f in columns) + " |"
-    return "\n".join([header, "|---|" + "---:|" * len(columns), "| Success rate | " + " | ".join(cells) + " |"])
+    return "\n".join([header, "|---|" + "---:|" * len(columns), *rows])
 
 
 def success_by_frames_caption(method_runs: list[dict]) -> str:
@@ -1204,6 +1218,56 @@ def default_config_variant_block(name: str, runs: dict[str, list[dict]], results
     return "\n".join(lines)
 
 
+UTD_BASELINE = "sac"  # Table 1's plain SAC (results/paper_budget), beside the sweep_utd runs
+
+
+def sac_utd_block(runs: dict[str, list[dict]], baseline: list[dict], results: Path, command: str) -> str:
+    """Plain SAC at several gradient-update ratios (``recipes/config/sweep_utd.yaml``), equal frames: the
+    validation success by frames, Table 1's SAC runs beside them up to the same frames, and each row's
+    validation and test success at its end."""
+    begin, end = markers("sac_utd")
+    groups = {f"`{m}`, {_get(rs[0]['config'], 'optim.utd_ratio')} updates per transition": rs
+              for m, rs in runs.items()}
+    until = max((_history_end(r) for rs in runs.values() for r in rs), default=0)
+    if baseline:
+        groups[f"Table 1's `{UTD_BASELINE}` (older code), "
+               f"{_get(baseline[0]['config'], 'optim.utd_ratio')} updates per transition"] = baseline
+    rows = ["| Method | Updates per transition | Seeds | Frames | Gradient updates | Training time "
+            "| Validation success at the end | Test success at the end | Test collision rate |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for method, method_runs in runs.items():
+        ratios = sorted({_get(r["config"], "optim.utd_ratio") for r in method_runs}, key=str)
+        rows.append(
+            f"| `{method}` | {', '.join(map(str, ratios))} | {len(method_runs)} | "
+            f"{', '.join(sorted({str(r['summary'].get('frames')) for r in method_runs}))} | "
+            f"{', '.join(sorted({str(r['summary'].get('updates')) for r in method_runs}))} | "
+            f"{hms(_mean(method_runs, 'train_wall_s') or 0.0)} | "
+            f"{mean_std(_values(method_runs, 'validation_success_rate'))} | {mean_std(_values(method_runs, 'success_rate'))} | "
+            f"{mean_std(_values(method_runs, 'test_collision_rate'))} |")
+    lines = [
+        begin,
+        "### Plain SAC against the number of gradient updates per collected transition (generated)",
+        "",
+        f"Generated by `{command}` from the runs in `{results}` and Table 1's `{UTD_BASELINE}` runs in "
+        f"`{RESULTS_OF['table1']}` (their `summary.json`, `history.json`, `config.yaml` and `sweep.json`). "
+        "Plain SAC (`method=sac`), its update ratio `optim.utd_ratio` the only difference between this sweep's runs.",
+        "",
+        f"Success on the validation tasks during training (each run's last periodic evaluation at or below the "
+        f"column's frames), mean (std) over seeds, up to {until:,} frames:",
+        "",
+        success_by_frames_rows(groups, every=20_000, until=until) or "—",
+        "",
+        "At the end of each run's budget: the validation tasks' last periodic evaluation, and the 1000 test tasks "
+        "(`eval.test_seed`), once:",
+        "",
+        "\n".join(rows),
+        "",
+    ]
+    lines += provenance_lines(runs, "Budget (the runs' config.yaml):")
+    lines.append(end)
+    return "\n".join(lines)
+
+
 def speed_block(results: Path, command: str) -> str:
     """The benchmarks' outputs under ``results`` (``<name>.txt``: the command on the first line,
     prefixed ``$``, then what it printed), each as it was printed; and whether a GPU figure exists."""
@@ -1242,7 +1306,7 @@ def write_block(path: Path, text: str, begin: str = BEGIN, end_marker: str = END
 
 
 RESULTS_OF = {"speed": "results/benchmarks", **{n: d for n, (d, _) in DEFAULT_CONFIG_VARIANTS.items()},
-              "tasks": "results/tasks", "table1_40k": "results/table1_40k",
+              "tasks": "results/tasks", "sac_utd": "results/sac_utd", "table1_40k": "results/table1_40k",
               "table5": "results/transfer", "pick_place": "results/transfer", "collision_net": "results/collision_net",
               **{name: "results/paper_budget" for name in ("table1", "table2", "table3", "table4", "tableA1", "ablations")}}
 
@@ -1254,7 +1318,8 @@ def main(argv: list[str] | None = None) -> str:
                              "ours minus one addition at a time; table1_40k: the earlier 40k-frame runs; "
                              "tasks: SILP+ on the UR5e and Panda task models; default_config: the main job's "
                              "default config at its own budget (results/default_config); budget_choice, filter_choice: the "
-                             "earlier default config with the setting changed, the figures each was chosen on; table5: the MuJoCo transfer; "
+                             "earlier default config with the setting changed, the figures each was chosen on; sac_utd: plain SAC at "
+                             "several update ratios (results/sac_utd) beside Table 1's; table5: the MuJoCo transfer; "
                              "speed: the benchmarks' outputs (results/benchmarks)")
     parser.add_argument("--results", type=Path, default=None,
                         help="the sweep's results_dir (results/paper_budget, results/tasks, ... by --block)")
@@ -1295,6 +1360,10 @@ def render(name: str, results: Path, figure: Path, out: Path, command: str, plot
         return default_config_block(runs, results, command)
     if name in DEFAULT_CONFIG_VARIANTS:
         return default_config_variant_block(name, runs, results, command)
+    if name == "sac_utd":
+        budget = Path(RESULTS_OF["table1"])
+        baseline = load_results(budget).get(UTD_BASELINE, []) if budget.is_dir() else []
+        return sac_utd_block(runs, baseline, results, command)
     if name == "table1":  # the paper's Table 1 rows; the other tables' runs share the results dir
         runs = {m: rs for m, rs in runs.items() if m in ROW_ORDER}
     plotted = plot_curves(runs, plot_to)
@@ -1304,7 +1373,7 @@ def render(name: str, results: Path, figure: Path, out: Path, command: str, plot
 
 
 BLOCKS = ("table1", "ablations", "table2", "table3", "table4", "tableA1", "collision_net", "tasks", "default_config",
-          *DEFAULT_CONFIG_VARIANTS, "speed", "table5", "pick_place", "table1_40k")
+          *DEFAULT_CONFIG_VARIANTS, "sac_utd", "speed", "table5", "pick_place", "table1_40k")
 
 
 if __name__ == "__main__":

@@ -171,3 +171,36 @@ def test_table1_says_how_far_ours_is_from_the_papers_silp(tmp_path):
     runs = report.load_results(tmp_path)
     text = report.block(runs, tmp_path, None, tmp_path / "r.md", "cmd", [], "table1")
     assert f"- SAC-SILP+ extended (ours) − SAC-SILP+ (paper's): {0.98 - 0.91:+.3f} success rate (2 and 2 seeds)" in text
+
+
+def test_sac_utd_block_sets_each_update_ratio_beside_table1s_sac_at_equal_frames(tmp_path, monkeypatch):
+    def run(root: Path, method: str, seed: int, ratio: float, end: int, slope: float) -> dict[int, float]:
+        path = root / method / f"seed{seed}"
+        path.mkdir(parents=True)
+        curve = {f: round(slope * f / 1000 + 0.01 * seed, 4) for f in range(8000, end + 1, 8000)}
+        (path / "history.json").write_text(json.dumps(
+            {"history": [{"frames": f, "success_rate": v} for f, v in curve.items()]}))
+        (path / "summary.json").write_text(json.dumps(
+            {"success_rate": 0.5 + seed / 10, "validation_success_rate": curve[max(curve)], "frames": end,
+             "updates": int(end * ratio), "train_wall_s": 600.0, "test_collision_rate": 0.01}))
+        (path / "config.yaml").write_text(yaml.safe_dump({"algorithm": "sac", "optim": {"utd_ratio": ratio},
+                                                          "collector": {"total_frames": end}}))
+        return curve
+
+    utd, budget = tmp_path / "sac_utd", tmp_path / "paper_budget"
+    low = run(utd, "sac_utd0.25", 0, 0.25, 64_000, 0.001)
+    high = run(utd, "sac_utd1", 0, 1.0, 64_000, 0.004)
+    table1 = [run(budget, "sac", seed, 0.25, 160_000, 0.0005) for seed in (0, 1)]
+    monkeypatch.setitem(report.RESULTS_OF, "table1", str(budget))
+    text = report.main(["--block", "sac_utd", "--results", str(utd), "--out", str(tmp_path / "r.md")])
+    lines = text.splitlines()
+    # columns every 20k frames up to the sweep's runs' end, however far Table 1's runs went
+    assert "| Frames | 20k | 40k | 60k | 64k |" in lines
+    cells = lambda label: [c.strip() for c in next(l for l in lines if l.startswith(f"| {label}")).strip("|").split("|")]
+    last_at = lambda curve, f: curve[max(k for k in curve if k <= f)]
+    assert cells("`sac_utd1`, 1.0 updates")[1:] == [f"{last_at(high, f):.3f}" for f in (20_000, 40_000, 60_000, 64_000)]
+    assert cells("`sac_utd0.25`, 0.25 updates")[1:] == [f"{last_at(low, f):.3f}" for f in (20_000, 40_000, 60_000, 64_000)]
+    at_40k = np.array([last_at(c, 40_000) for c in table1])
+    assert cells("Table 1's `sac`")[2] == f"{at_40k.mean():.3f} ({at_40k.std():.3f})"
+    row = cells("`sac_utd1` |")
+    assert row[1:5] == ["1.0", "1", "64000", "64000"] and row[6] == f"{high[64_000]:.3f}" and row[7] == "0.500"
