@@ -196,6 +196,7 @@ def test_sac_utd_block_sets_each_update_ratio_beside_table1s_sac_at_equal_frames
     lines = text.splitlines()
     # columns every 20k frames up to the sweep's runs' end, however far Table 1's runs went
     assert "| Frames | 20k | 40k | 60k | 64k |" in lines
+    assert "The settings this sweep's runs differ in (their `config.yaml`, names and paths aside): `optim.utd_ratio`." in text
     cells = lambda label: [c.strip() for c in next(l for l in lines if l.startswith(f"| {label}")).strip("|").split("|")]
     last_at = lambda curve, f: curve[max(k for k in curve if k <= f)]
     assert cells("`sac_utd1`, 1.0 updates")[1:] == [f"{last_at(high, f):.3f}" for f in (20_000, 40_000, 60_000, 64_000)]
