@@ -128,12 +128,11 @@ def test_the_page_blocks_regenerate_from_the_committed_results(name, tmp_path, m
 
 def _main_job_config(*overrides: str) -> dict:
     """The resolved config the main job saves with a run, as ``recipes/sac_silp.py`` composes it."""
-    from hydra import compose, initialize_config_dir
+    from hydra import compose
     from omegaconf import OmegaConf
-    import schema
+    import sweep
 
-    schema.register()
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
+    with sweep.config_context():
         return OmegaConf.to_container(compose(config_name="sac_silp", overrides=list(overrides)), resolve=True)
 
 
