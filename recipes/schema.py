@@ -63,7 +63,7 @@ class SILPConfig:
     lambda1: float = 1.0
     lambda2: float = 20.0
     k: int = 1
-    demo_rows: str = "select"
+    demo_rows: str = "auto"
 
 
 @dataclass

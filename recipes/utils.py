@@ -31,6 +31,7 @@ from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
+from torchrl_silp.objectives import DEMO_ROWS
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
 from torchrl_silp.models.learned_collision import load_collision_net, with_learned_edges
@@ -105,9 +106,32 @@ def check_compile(cfg, device: torch.device) -> None:
     if comp.get("compile_mode") == "reduce-overhead":
         raise ValueError("compile.cudagraphs and compile.compile_mode=reduce-overhead both capture CUDA graphs: "
                          "choose one")
-    if cfg.silp.bc and cfg.silp.demo_rows != "mask":
-        raise ValueError(f"compile.cudagraphs needs fixed shapes: set silp.demo_rows=mask (got "
+    if cfg.silp.bc and demo_rows_of(cfg) != "mask":
+        raise ValueError(f"compile.cudagraphs needs fixed shapes: set silp.demo_rows=mask or auto (got "
                          f"{cfg.silp.demo_rows!r}, whose demo rows are a shape that depends on the batch)")
+
+
+DEMO_ROWS_CHOICES = (*DEMO_ROWS, "auto")
+
+
+def demo_rows_of(cfg) -> str:
+    """``cfg.silp.demo_rows`` for :class:`SILPLoss`, ``auto`` resolved to the faster way for the run.
+
+    ``auto`` is ``mask`` under ``compile.cudagraphs`` (fixed shapes) and in a compiled update without
+    a BC filter: there the masked term costs one actor pass over the whole batch, while ``select``'s
+    ``nonzero`` breaks the compiled graph (each update runs three graphs instead of one, and compiling
+    takes twice as long). Else ``select``: with a filter, its look-ahead (reward) or critic (Q) on every
+    row makes a masked update slower, and an eager update has no graph to break.
+    """
+    rows = cfg.silp.demo_rows
+    if rows not in DEMO_ROWS_CHOICES:
+        raise ValueError(f"silp.demo_rows must be one of {DEMO_ROWS_CHOICES}, got {rows!r}")
+    if rows != "auto":
+        return rows
+    comp = cfg.get("compile") or {}
+    if comp.get("cudagraphs", False) or (comp.get("compile", False) and cfg.silp.filter == "none"):
+        return "mask"
+    return "select"
 
 
 def resolve_device(cfg) -> torch.device:
@@ -309,7 +333,7 @@ def make_loss(cfg, actor, critic, model, env):
     loss = SILPLoss(
         rl, model, filter=cfg.silp.filter, lambda1=cfg.silp.lambda1, lambda2=cfg.silp.lambda2, k=cfg.silp.k,
         gamma=cfg.optim.gamma, observation_transform=make_observation_transform(cfg, model),
-        demo_rows=cfg.silp.demo_rows,
+        demo_rows=demo_rows_of(cfg),
     )
     return loss, updater
 
@@ -338,18 +362,20 @@ class GradientStep:
     """One gradient update on a sampled batch: the losses, backward, every optimiser's step, the target
     update; calling it returns the detached loss TensorDict.
 
-    :attr:`forward_backward` (the losses and their backward) is the part :func:`compile_update`
-    compiles. The optimisers' fused steps and the target update run eagerly around it: traced,
-    each ``Optimizer.step`` breaks the graph twice, and in a loop over optimisers dynamo gives up
-    on the whole function.
+    :attr:`loss_fn` (the loss's forward) is the part :func:`compile_update` compiles; AOTAutograd
+    compiles its backward with it. ``.backward()`` and the optimisers' fused steps and the target
+    update run eagerly around it: dynamo cannot trace ``Tensor.backward()``, and a graph break there
+    makes it trace the whole loss a second time (about half of the compile time); traced, each
+    ``Optimizer.step`` breaks the graph twice, and in a loop over optimisers dynamo gives up on the
+    whole function.
     """
 
     def __init__(self, loss, optimizers: dict, updater):
         self.loss, self.optimizers, self.updater = loss, optimizers, updater
-        self.forward_backward = self._forward_backward
+        self.loss_fn = loss
 
-    def _forward_backward(self, sample):
-        loss_td = self.loss(sample)
+    def forward_backward(self, sample):
+        loss_td = self.loss_fn(sample)
         sum(v for k, v in loss_td.items() if k.startswith("loss_")).backward()
         return loss_td.detach()
 
@@ -373,15 +399,15 @@ def make_gradient_step(loss, optimizers: dict, updater) -> GradientStep:
 
 def compile_update(cfg, gradient_step):
     """``gradient_step`` compiled with ``torch.compile`` when ``cfg.compile.compile`` (TorchRL's SOTA recipes'
-    switch), else itself: of a :class:`GradientStep`, its forward and backward; any other callable whole.
-    A first call whose compilation fails (e.g. no C++ compiler for inductor's CPU code) warns and runs
-    eagerly from then on.
+    switch), else itself: of a :class:`GradientStep`, its loss's forward (and so, through AOTAutograd, its
+    backward); any other callable whole. A first call whose compilation fails (e.g. no C++ compiler for
+    inductor's CPU code) warns and runs eagerly from then on.
 
     With ``cfg.compile.cudagraphs`` the whole step (forward, backward, the optimisers' steps and the target
     update) is then captured in a CUDA graph by tensordict's ``CudaGraphModule``, as TorchRL's SOTA recipes
     do, and replayed on each call after ``cfg.compile.warmup`` warm-up calls; a capture that fails warns
     and the step runs uncaptured from then on (:func:`check_compile` has refused what cannot work)."""
-    step = _compile_forward_backward(cfg, gradient_step) if cfg.compile.compile else gradient_step
+    step = _compile_loss(cfg, gradient_step) if cfg.compile.compile else gradient_step
     if not cfg.compile.get("cudagraphs", False):
         return step
     return _capture_cuda_graph(step, cfg.compile.warmup)
@@ -420,9 +446,20 @@ def _capture_cuda_graph(step, warmup: int):
     return call
 
 
-def _compile_forward_backward(cfg, gradient_step):
-    part = gradient_step.forward_backward if isinstance(gradient_step, GradientStep) else gradient_step
-    compiled = torch.compile(part, mode=cfg.compile.compile_mode)
+def _compile_loss(cfg, gradient_step):
+    if not isinstance(gradient_step, GradientStep):
+        return _falling_back(torch.compile(gradient_step, mode=cfg.compile.compile_mode), gradient_step)
+    # a new step on the same loss and optimisers; its first forward and backward (where inductor
+    # compiles the backward) fall back on the eager ones together
+    step = GradientStep(gradient_step.loss, gradient_step.optimizers, gradient_step.updater)
+    step.loss_fn = torch.compile(gradient_step.loss_fn, mode=cfg.compile.compile_mode)
+    step.forward_backward = _falling_back(step.forward_backward, gradient_step.forward_backward,
+                                          on_failure=step.zero_grad)
+    return step
+
+
+def _falling_back(compiled, eager, on_failure=None):
+    """``compiled`` from its first call on, or ``eager`` if that call raises (warning once)."""
     chosen = []
 
     def call(sample):
@@ -434,16 +471,12 @@ def _compile_forward_backward(cfg, gradient_step):
         except Exception as err:  # noqa: BLE001 - any compiler failure falls back on the same function
             warnings.warn(f"compile.compile: torch.compile failed ({type(err).__name__}: {str(err)[:300]}); "
                           "the update runs eagerly")
-            chosen.append(part)
-            if isinstance(gradient_step, GradientStep):
-                gradient_step.zero_grad()  # whatever the failed call accumulated
-            out = part(sample)
+            chosen.append(eager)
+            if on_failure is not None:
+                on_failure()  # whatever the failed call accumulated
+            out = eager(sample)
         return out
 
-    if isinstance(gradient_step, GradientStep):  # a new step on the same loss and optimisers
-        step = GradientStep(gradient_step.loss, gradient_step.optimizers, gradient_step.updater)
-        step.forward_backward = call
-        return step
     return call
 
 

@@ -20,8 +20,9 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+from torchrl.modules import Actor
 
-from torchrl_silp import UR5eReachEnv
+from torchrl_silp import CollisionHandling, ReachEnv, UR5eReachEnv
 from torchrl_silp.geometry import aabb_from_center
 from torchrl_silp.models import UR5eReach
 from torchrl_silp.modules.gp_exploration import (
@@ -644,3 +645,22 @@ def test_model_must_be_a_task_model():
         GPGuidedExploration(object())
     with pytest.raises(TypeError, match="model"):
         GPGuidedExploration(UR5eReachEnv(num_envs=1))  # the env holds the model, it is not one
+
+
+def test_recorded_rewards_are_the_envs_rewards_of_those_transitions(model):
+    """In a rollout, each step's newest history entry holds the reward the env gave the transition into it
+    (the collision penalty after a collision, -distance or the success reward otherwise)."""
+    gp = GPGuidedExploration(model, generator=torch.Generator().manual_seed(0))
+    env = TransformedEnv(ReachEnv(model, num_envs=16, seed=3), Compose(
+        CollisionHandling(2), model.observation_transform(), InitTracker(), gp.make_tensordict_primer()))
+    torch.manual_seed(0)
+    actor = Actor(torch.nn.Sequential(torch.nn.Linear(15, 3), torch.nn.Tanh()), in_keys=["observation"])
+    with set_exploration_type(RANDOM), torch.no_grad():
+        rollout = env.rollout(30, TensorDictSequential(actor, gp), break_when_any_done=False)
+    count = rollout[COUNT].squeeze(-1)  # [B, T]
+    newest = rollout[REWARD].gather(-1, ((count - 1) % gp.history_size).unsqueeze(-1)).squeeze(-1)
+    env_reward = rollout["next", "reward"].squeeze(-1)
+    later = ~rollout["is_init"].squeeze(-1)[:, 1:]  # steps that record the previous transition
+    torch.testing.assert_close(newest[:, 1:][later], env_reward[:, :-1][later])
+    collided = rollout["next", "collision"].squeeze(-1)[:, :-1][later]
+    assert collided.sum() >= 5  # the penalty path is exercised, not only -distance

@@ -321,18 +321,42 @@ def test_cudagraphs_is_refused_where_it_cannot_run_naming_the_field():
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
     with pytest.raises(ValueError, match="compile.cudagraphs captures the update in a CUDA graph: it needs device=cuda"):
         utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask"), cpu)
-    with pytest.raises(ValueError, match="set silp.demo_rows=mask \\(got 'select'"):
-        utils.check_compile(config("compile.cudagraphs=true"), cuda)
+    with pytest.raises(ValueError, match="set silp.demo_rows=mask or auto \\(got 'select'"):
+        utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=select"), cuda)
     with pytest.raises(ValueError, match="reduce-overhead both capture CUDA graphs"):
         utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask",
                                    "compile.compile_mode=reduce-overhead"), cuda)
-    # what can run: fixed shapes on CUDA, and plain SAC, which has no BC term
+    # what can run: fixed shapes on CUDA (auto takes them, whatever the filter), and plain SAC, which has no BC term
     utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask"), cuda)
+    utils.check_compile(config("compile.cudagraphs=true", "silp.filter=reward"), cuda)
     utils.check_compile(config("compile.cudagraphs=true", "method=sac"), cuda)
     # and start_run refuses before it writes anything
     with pytest.raises(ValueError, match="needs device=cuda"):
         utils.start_run(config("compile.cudagraphs=true", "silp.demo_rows=mask", "run_dir=/nonexistent/never"))
     assert not Path("/nonexistent/never").exists()
+
+
+@pytest.mark.parametrize(("overrides", "rows"), [
+    ((), "mask"),  # the main job: compiled, no BC filter
+    (("silp.filter=reward",), "select"),  # the look-ahead on every row would cost more than the graph break
+    (("silp.filter=q",), "select"),
+    (("compile.compile=false",), "select"),  # eager: no graph to break
+    (("compile.compile=false", "compile.cudagraphs=true", "silp.filter=reward"), "mask"),  # fixed shapes
+    (("silp.demo_rows=select",), "select"),  # an explicit choice stands
+    (("silp.demo_rows=mask", "silp.filter=reward"), "mask"),
+])
+def test_auto_demo_rows_resolve_to_the_faster_way_for_the_run(overrides, rows):
+    cfg = config(*overrides)
+    assert utils.demo_rows_of(cfg) == rows
+    model = utils.make_model(cfg, torch.device("cpu"))
+    env = utils.make_env(cfg, model, torch.device("cpu"), seed=0)
+    actor, critic = utils.make_actor_critic(cfg, model, env, torch.device("cpu"))
+    assert utils.make_loss(cfg, actor, critic, model, env)[0].demo_rows == rows
+
+
+def test_bad_demo_rows_is_refused_naming_the_field():
+    with pytest.raises(ValueError, match="silp.demo_rows must be one of \\('select', 'mask', 'auto'\\), got 'all'"):
+        utils.demo_rows_of(config("silp.demo_rows=all"))
 
 
 def test_cudagraphs_makes_the_optimisers_capturable():

@@ -368,3 +368,25 @@ def test_bad_model_and_loss_raise():
         SILPLoss(rl_loss, object(), filter="reward")
     with pytest.raises(TypeError, match="LossModule"):
         SILPLoss(nn.Linear(2, 2), filter="none")
+
+
+def test_compiled_loss_traces_once_for_batches_of_one_shape(model):
+    """A compiled SILPLoss called on a second batch of the same shape runs the code traced on the first:
+    nothing the first call sets (e.g. lazily built keys) makes dynamo compile again."""
+    from torch._dynamo.testing import CompileCounter
+
+    torch._dynamo.reset()
+    loss, _ = make_loss("ddpg")
+    silp = SILPLoss(loss, model, filter="none", lambda2=2.0, demo_rows="mask")
+    silp.make_value_estimator(gamma=0.9)  # as a recipe does (DDPGLoss would make its default one on first use)
+    counter = CompileCounter()  # dynamo's trace only: no inductor
+    compiled = torch.compile(silp, backend=counter)
+    first = compiled(make_batch(model, seed=0))
+    traced = counter.frame_count
+    second = compiled(make_batch(model, seed=1))
+    assert traced > 0
+    assert counter.frame_count == traced
+    # the second call computed its own batch's term, not a replay of the first's
+    eager = silp(make_batch(model, seed=1))
+    torch.testing.assert_close(second["loss_bc"], eager["loss_bc"])
+    assert not torch.equal(first["loss_bc"], second["loss_bc"])

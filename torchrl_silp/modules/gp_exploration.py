@@ -338,11 +338,13 @@ class GPGuidedExploration(TensorDictModuleBase):
     to: the current one, or, after a collision (when the env put the arm back),
     the colliding one ``model.transition(prev_state, prev_action)``, where
     ``prev_state`` is the current state with the previous configuration; its
-    reward is ``model.outcome(prev_state, that_state)``'s (``step_mdp`` drops
-    ``("next", "reward")`` from the root, so it is recomputed). The first state
+    reward is ``model.score`` of the env's collision flag and that state's
+    achieved goal (``step_mdp`` drops ``("next", "reward")`` from the root, so it
+    is recomputed; without a collision flag in the tensordict, from
+    ``model.outcome(prev_state, that_state)``, the motion checked again). The first state
     of an episode is recorded with ``model.goal_reward(achieved, desired)``, the
-    task's reward for being there. Cost outside recoveries: one transition and
-    one motion check of the batch per call; a recovery adds the candidates'
+    task's reward for being there. Cost outside recoveries: one transition of
+    the batch per call; a recovery adds the candidates'
     transitions, their motion checks when masking (``R·n`` motions of up to one
     action each: the bulk of a recovery's cost) and the GP solve. All envs
     are handled at once: the collided envs' GPs share one batched Cholesky of
@@ -584,8 +586,12 @@ class GPGuidedExploration(TensorDictModuleBase):
         probs = torch.where(flat, uniform, scaled.clamp(0.0, 1.0))
         return probs / probs.sum(-1, keepdim=True)
 
-    def _record(self, state: TensorDict, memory: dict, fresh: torch.Tensor, collided: torch.Tensor):
-        """Push the state the previous action led to, and its reward, into the ring buffers."""
+    def _record(self, state: TensorDict, memory: dict, fresh: torch.Tensor, collided: torch.Tensor,
+                collision_seen: bool):
+        """Push the state the previous action led to, and its reward, into the ring buffers.
+
+        ``collision_seen``: ``collided`` is the env's collision flag of the previous motion (else that
+        motion is checked here)."""
         model, H = self.model, self.history_size
         ck, ak = model.config_key, model.achieved_goal_key
         config, achieved, desired = state.get(ck), state.get(ak), state.get(model.desired_goal_key)
@@ -598,7 +604,11 @@ class GPGuidedExploration(TensorDictModuleBase):
         led_to = state.clone(False)
         led_to.set(ck, torch.where(hit, moved.get(ck).to(config.dtype), config))
         led_to.set(ak, torch.where(hit, moved.get(ak).to(achieved.dtype), achieved))
-        reward = model.outcome(prev_state, led_to)[0]
+        if collision_seen:
+            # the env's flag is the motion check of this very motion: scored, not checked again
+            reward = model.score(collided.unsqueeze(-1), led_to.get(ak), desired)[0]
+        else:
+            reward = model.outcome(prev_state, led_to)[0]
         reward = torch.where(fresh.unsqueeze(-1), model.goal_reward(achieved, desired), reward).squeeze(-1)
 
         count = torch.where(fresh, torch.zeros_like(memory[HISTORY_COUNT_KEY].squeeze(-1)),
@@ -668,13 +678,14 @@ class GPGuidedExploration(TensorDictModuleBase):
                 "gp.make_tensordict_primer() to the env, or every step looks like the first of an episode.",
             )
         collision = self._flag(tensordict, self.collision_key, m, device)
-        if collision is None:
+        collision_seen = collision is not None
+        if not collision_seen:
             collision = torch.zeros(m, dtype=torch.bool, device=device)
         fresh = is_init | (memory[HISTORY_COUNT_KEY].squeeze(-1) == 0)
         collided = collision & ~fresh
 
         with torch.no_grad():
-            hist_x, hist_r, count = self._record(state, memory, fresh, collided)
+            hist_x, hist_r, count = self._record(state, memory, fresh, collided, collision_seen)
             # one host sync decides whether any GP work is needed this step
             rows = collided.nonzero().squeeze(-1) if bool(collided.any()) else None
             chosen = None if rows is None else self._recovery_actions(state, rows, hist_x, hist_r, count)

@@ -216,8 +216,7 @@ class SILPLoss(LossModule):
         device = next(iter(loss_module.parameters()), torch.empty(0)).device
         self.register_buffer("lambda1", torch.tensor(float(lambda1), device=device))
         self.register_buffer("lambda2", torch.tensor(float(lambda2), device=device))
-        self._in_keys = None
-        self._out_keys = None
+        self._refresh_keys()
 
     # ---------------------------------------------------------------- keys
     @staticmethod
@@ -245,12 +244,18 @@ class SILPLoss(LossModule):
         mine = {key: value for key, value in kwargs.items() if key in own}
         if mine:
             super().set_keys(**mine)
-        self._in_keys = None
-        self._out_keys = None
+        self._refresh_keys()
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         # the value estimator belongs to the wrapped loss: only refresh in_keys
-        self._in_keys = None
+        self._refresh_keys()
+
+    def _refresh_keys(self) -> None:
+        # computed now rather than on first use: a first use inside a compiled call sets the attribute
+        # dynamo guards on, and the next call would recompile the whole loss (~10 s on a CPU)
+        self._in_keys = self._out_keys = None
+        if "rl_loss" in self._modules:  # (LossModule.__init__ comes here before the wrapped loss is set)
+            _ = self.in_keys, self.out_keys
 
     @property
     def in_keys(self):
