@@ -31,11 +31,11 @@ from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
-from torchrl_silp.objectives import DEMO_ROWS
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
 from torchrl_silp.models.learned_collision import load_collision_net, with_learned_edges
 from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ, ReLU
+from torchrl_silp.objectives import DEMO_ROWS
 
 EXPLORATION_MODES = ("gp", "random", "none")
 
@@ -120,7 +120,7 @@ def demo_rows_of(cfg) -> str:
     ``auto`` is ``mask`` under ``compile.cudagraphs`` (fixed shapes) and in a compiled update without
     a BC filter: there the masked term costs one actor pass over the whole batch, while ``select``'s
     ``nonzero`` breaks the compiled graph (each update runs three graphs instead of one, and compiling
-    takes twice as long). Else ``select``: with a filter, its look-ahead (reward) or critic (Q) on every
+    takes more than twice as long). Else ``select``: with a filter, its look-ahead (reward) or critic (Q) on every
     row makes a masked update slower, and an eager update has no graph to break.
     """
     rows = cfg.silp.demo_rows
