@@ -53,7 +53,8 @@ def summary(run_dir: Path) -> dict:
 
 def load_buffer(path: Path) -> TensorDictReplayBuffer:
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(5000), checkpointer=FilledStorageCheckpointer())
-    buffer.loads(path)
+    if not (path / "EMPTY").exists():  # MixedReplay.dumps marks a buffer that held nothing yet
+        buffer.loads(path)
     return buffer
 
 
@@ -203,7 +204,8 @@ def test_kill_at_a_random_time_then_resume_loses_and_repeats_nothing(tmp_path):
     assert len(interaction_after) == target
     assert (interaction_after.storage[:n_inter] == interaction.storage[:n_inter]).all()
     assert len(demos_after) >= n_demo
-    assert (demos_after.storage[:n_demo] == demos.storage[:n_demo]).all()
+    if n_demo:  # (a checkpoint saved before the first planned episode holds no demos)
+        assert (demos_after.storage[:n_demo] == demos.storage[:n_demo]).all()
     # each batch logged exactly once, in order, the killed run's rows after its checkpoint dropped
     steps = logged_steps(run_dir)
     assert steps["train/episodes"] == list(range(100, target + 1, 100))
