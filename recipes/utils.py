@@ -365,7 +365,7 @@ class GradientStep:
     :attr:`loss_fn` (the loss's forward) is the part :func:`compile_update` compiles; AOTAutograd
     compiles its backward with it. ``.backward()`` and the optimisers' fused steps and the target
     update run eagerly around it: dynamo cannot trace ``Tensor.backward()``, and a graph break there
-    makes it trace the whole loss a second time (about half of the compile time); traced, each
+    makes it trace the whole loss a second time; traced, each
     ``Optimizer.step`` breaks the graph twice, and in a loop over optimisers dynamo gives up on the
     whole function.
     """
