@@ -18,6 +18,7 @@ import torch
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_silp.data import EpisodeAssembler, FilledStorageCheckpointer
+from torchrl_silp.data.demo_buffer import _load as load_checkpointed_buffer
 
 RECIPES = Path(__file__).parents[1] / "recipes"
 
@@ -53,8 +54,7 @@ def summary(run_dir: Path) -> dict:
 
 def load_buffer(path: Path) -> TensorDictReplayBuffer:
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(5000), checkpointer=FilledStorageCheckpointer())
-    if not (path / "EMPTY").exists():  # MixedReplay.dumps marks a buffer that held nothing yet
-        buffer.loads(path)
+    load_checkpointed_buffer(buffer, path)  # as MixedReplay.loads does (a buffer that held nothing is marked empty)
     return buffer
 
 
