@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -219,6 +220,27 @@ def test_unsolvable_problem_uses_the_budget(model, budget_s):
     path, wall = PRMPlanner(walled, budget_s, seed=0).plan(start[i], goal[i], scene)
     assert path is None
     assert 0.8 * budget_s <= wall and within_budget(wall, budget_s)
+
+
+
+class SlowToBoundReach(JointWallReach):
+    """A model whose one-off Lipschitz estimate takes longer than a planning budget."""
+
+    def lipschitz(self):
+        if self._lipschitz is None:
+            time.sleep(0.5)
+        return super().lipschitz()
+
+
+def test_a_models_one_off_setup_is_not_charged_to_a_tasks_budget(model):
+    drawn = model.sample_tasks(64, torch.Generator().manual_seed(5))
+    start, goal = drawn["joint_position"], drawn["goal_joint_position"]
+    i = int(((goal[:, 0] - start[:, 0]).abs() > 0.6).nonzero()[0])
+    middle = float(start[i, 0] + goal[i, 0]) / 2
+    slow = SlowToBoundReach(middle - 0.1, middle + 0.1)
+    planner = PRMPlanner(slow, 0.2, seed=0)
+    path, wall = planner.plan(start[i], goal[i], scene_of(slow, drawn[i]))
+    assert path is None and wall < 0.2 + 0.25 < 0.5
 
 
 # ------------------------------------------------------------ (c) execution

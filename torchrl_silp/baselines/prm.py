@@ -203,6 +203,9 @@ class PRMPlanner:
             bounds.setLow(j, self._low[j])
             bounds.setHigh(j, self._high[j])
         self._space.setBounds(bounds)
+        # the edge check's margin rests on a Lipschitz bound a model estimates once, on first
+        # use (0.1-1 s): paid here, not out of the first task's budget
+        model.motion_margin(self.edge_step)
 
     def _as_vector(self, name: str, value) -> torch.Tensor:
         D = self.dim
