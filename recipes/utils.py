@@ -34,7 +34,7 @@ from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
 from torchrl_silp.models.learned_collision import load_collision_net, with_learned_edges
-from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ, ReLU
+from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ, ReLU, with_onednn_linear
 from torchrl_silp.objectives import DEMO_ROWS
 
 EXPLORATION_MODES = ("gp", "random", "none")
@@ -192,7 +192,9 @@ def make_env(cfg, model, device, seed: int, primers=()) -> TransformedEnv:
 
 # --------------------------------------------------------------------- models
 def _mlp(cfg, out_features: int, device) -> nn.Module:
-    return MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=ReLU, device=device)
+    mlp = MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=ReLU, device=device)
+    # (a run saved before the switch existed, or bc.py's actor config, has no such field: the default)
+    return with_onednn_linear(mlp) if cfg.network.get("onednn_linear", True) else mlp
 
 
 def make_actor_critic(cfg, model, env, device):
