@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
 import update_step  # noqa: E402
@@ -32,8 +33,6 @@ def test_a_fused_adam_step_counts_as_the_optimiser_not_as_other_aten():
 
 
 def test_profile_on_a_device_other_than_the_cpu_is_refused_before_anything_is_built(monkeypatch, capsys):
-    import torch
-
     monkeypatch.setattr(update_step, "resolve_device", lambda cfg: torch.device("cuda"))
 
     def build(*args, **kwargs):
@@ -54,3 +53,14 @@ def test_a_negative_profile_count_is_refused(capsys):
 def test_the_benchmark_refuses_a_cuda_graph_off_cuda_as_the_recipe_does():
     with pytest.raises(ValueError, match="compile.cudagraphs captures the update in a CUDA graph: it needs device=cuda"):
         update_step.main(["compile.cudagraphs=true", "silp.demo_rows=mask", "device=cpu"])
+
+
+def test_the_onednn_rate_is_of_the_same_float32_product():
+    # the benchmark's second floor is only a floor if oneDNN computes what torch's matmul does, in float32
+    a, w = torch.randn(256, 256), torch.randn(256, 256)
+    exact = a.double() @ w.double().T
+    onednn = torch.ops.mkldnn._linear_pointwise(a, w, None, "none", [], "").double()
+    torch_error, onednn_error = ((a @ w.T).double() - exact).abs().max(), (onednn - exact).abs().max()
+    # float32 rounding of 256-term sums of products of size ~1: ~1e-5; bfloat16 inputs would give ~1e-1
+    assert onednn_error < 4 * torch_error + 1e-6 and onednn_error < 1e-4
+    assert update_step.onednn_gemm_rate() > 0
