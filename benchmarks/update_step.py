@@ -249,12 +249,12 @@ def onednn_gemm_rate() -> float | None:
     ones; oneDNN, also in torch's CPU build, uses the AVX-512 units, so its rate is
     the one the core allows. Exact float32 both ways: no reduced-precision math.
     """
-    a, w = torch.randn(256, 256), torch.randn(256, 256)
-    try:
-        linear = torch.ops.mkldnn._linear_pointwise
-        linear(a, w, None, "none", [], "")
-    except (AttributeError, RuntimeError):
+    from torchrl_silp.modules import onednn_linear_available
+
+    if not onednn_linear_available():
         return None
+    a, w = torch.randn(256, 256), torch.randn(256, 256)
+    linear = torch.ops.mkldnn._linear_pointwise
     return 2 * 256**3 / (median_ms(lambda: linear(a, w, None, "none", [], ""), 200, torch.device("cpu")) / 1e3)
 
 

@@ -3,7 +3,6 @@ a ReLU for compiled CPU updates, a linear layer whose CPU products run through o
 
 from torchrl_silp.modules.activations import ReLU
 from torchrl_silp.modules.averaging import make_averaged_actor
-from torchrl_silp.modules.linear import Linear, onednn_linear_available, with_onednn_linear
 from torchrl_silp.modules.gp_exploration import (
     GP_EXPLORATION_MODES,
     GP_STATE_KEYS,
@@ -14,6 +13,7 @@ from torchrl_silp.modules.gp_exploration import (
     gp_posterior,
     matern52_kernel,
 )
+from torchrl_silp.modules.linear import Linear, onednn_linear_available, with_onednn_linear
 from torchrl_silp.modules.networks import NextGoalOffsetQ
 
 __all__ = [

@@ -78,7 +78,7 @@ def _(info, in_dims, x, weight, bias):
     x_dim, weight_dim, bias_dim = in_dims
     if weight_dim is None and bias_dim is None:
         # one layer for every member: the members' rows are rows of one product
-        return _linear(x, weight, bias), x_dim
+        return _product(x, weight, bias), x_dim
     # an ensemble's own layers: one product per member (a handful, not the batch)
     size = info.batch_size
     xs = x.movedim(x_dim, 0) if x_dim is not None else x.expand(size, *x.shape)
@@ -120,9 +120,9 @@ class Linear(nn.Linear):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if (
             x.device.type == "cpu" and x.dtype == torch.float32 and self.weight.dtype == torch.float32
-            and x.shape[-1] == self.in_features and x.numel() >= MIN_ROWS * self.in_features and _ONEDNN
+            and x.shape[-1] == self.in_features and _ONEDNN
         ):
-            return _linear(x, self.weight, self.bias)
+            return _product(x, self.weight, self.bias)
         return super().forward(x)
 
 
