@@ -39,9 +39,10 @@ def _(x, weight, bias):
 
 _linear = torch.ops.torchrl_silp.linear.default
 
-# below this many rows a oneDNN call's fixed cost (~10 us, against ~1 us for torch's) outweighs its
-# faster arithmetic: 16 rows of a 256 x 256 layer take as long either way on an AMD EPYC
-MIN_ROWS = 32
+# below this many rows a oneDNN call's fixed cost outweighs its faster arithmetic: on an AMD EPYC,
+# an MLP of the recipes' shape runs its forward faster through oneDNN from ~96 rows on one thread
+# and ~192 on two (benchmarks/linear_layers.py); a collector's 32-row policy call stays on torch's
+MIN_ROWS = 128
 
 
 def _product(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
@@ -104,9 +105,16 @@ class Linear(nn.Linear):
     and ``torch.func.vmap`` runs once per member of a vmapped ensemble.
     Float32 throughout: outputs and gradients equal ``nn.Linear``'s up to the
     order of the sums. A product of fewer than :data:`MIN_ROWS` rows (one
-    task's policy step) takes torch's path: there oneDNN's fixed cost per call
-    outweighs its rate. So do other dtypes and devices, and a torch build
-    without oneDNN. Same parameters and state dict as ``nn.Linear``.
+    task's policy step, a collector's batch) takes torch's path: there
+    oneDNN's fixed cost per call outweighs its rate. So do other dtypes and
+    devices, and a torch build without oneDNN. Same parameters and state dict
+    as ``nn.Linear``.
+
+    It pays where the products dominate: a compiled update of a few hundred
+    rows on one thread. An eager backward pays the operator's Python autograd
+    per layer, and on two threads torch's products close most of the gap, so
+    there ``nn.Linear`` is as fast or faster; ``benchmarks/linear_layers.py``
+    measures the crossover on a given machine.
 
     Examples:
         >>> import torch
