@@ -79,7 +79,7 @@ class NetworkConfig:
     hidden_sizes: list[int] = field(default_factory=lambda: [256, 256])
     goal_relative: bool = True
     next_tcp_feature: bool = True
-    onednn_linear: bool = True
+    onednn_linear: bool = False
 
 
 @dataclass

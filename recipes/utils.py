@@ -194,7 +194,7 @@ def make_env(cfg, model, device, seed: int, primers=()) -> TransformedEnv:
 def _mlp(cfg, out_features: int, device) -> nn.Module:
     mlp = MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=ReLU, device=device)
     # (a run saved before the switch existed, or bc.py's actor config, has no such field: the default)
-    return with_onednn_linear(mlp) if cfg.network.get("onednn_linear", True) else mlp
+    return with_onednn_linear(mlp) if cfg.network.get("onednn_linear", False) else mlp
 
 
 def make_actor_critic(cfg, model, env, device):

@@ -16,7 +16,7 @@ sys.path.insert(0, str(RECIPES))
 import sac_silp  # noqa: E402  (registers the structured schema)
 import utils  # noqa: E402
 
-from torchrl_silp.modules import NextGoalOffsetQ  # noqa: E402
+from torchrl_silp.modules import Linear, NextGoalOffsetQ  # noqa: E402
 
 
 def config(*overrides: str, name: str = "sac_silp"):
@@ -40,6 +40,28 @@ def test_critic_reads_the_goal_offset_and_the_model_next_goal():
     plain = config("env.num_envs=4", "network.next_tcp_feature=false", "network.goal_relative=false")
     _, critic = utils.make_actor_critic(plain, model, utils.make_env(plain, model, torch.device("cpu"), 0), "cpu")
     assert critic.in_keys == ["observation", "action"]
+
+
+
+def test_network_onednn_linear_switches_every_layer_of_actor_and_critic_and_keeps_their_outputs():
+    model = utils.make_model(config("env.num_envs=4"), torch.device("cpu"))
+    built = {}
+    for switch in ("false", "true"):
+        cfg = config("env.num_envs=4", f"network.onednn_linear={switch}")
+        env = utils.make_env(cfg, model, torch.device("cpu"), seed=0)
+        torch.manual_seed(0)
+        built[switch] = utils.make_actor_critic(cfg, model, env, torch.device("cpu")), env
+    (actor, critic), env = built["true"]
+    (plain_actor, plain_critic), _ = built["false"]
+    layers = lambda net: [m for m in net.modules() if isinstance(m, torch.nn.Linear)]  # noqa: E731
+    assert layers(actor) and all(type(m) is Linear for m in layers(actor) + layers(critic))
+    assert all(type(m) is torch.nn.Linear for m in layers(plain_actor) + layers(plain_critic))
+    assert config().network.onednn_linear is False  # the default: torch's layers (section 5 of results.md)
+    # the same parameters either way: the same seed builds the same networks, which compute the same values
+    # 160 rows: past MIN_ROWS, so the products do go through oneDNN
+    td = env.rollout(40, break_when_any_done=False).reshape(-1)
+    torch.testing.assert_close(critic(td.clone())["state_action_value"], plain_critic(td.clone())["state_action_value"],
+                               atol=1e-5, rtol=1e-5)
 
 
 METHODS = sorted(p.stem for p in (RECIPES / "config" / "method").glob("*.yaml"))
