@@ -42,7 +42,6 @@ def test_critic_reads_the_goal_offset_and_the_model_next_goal():
     assert critic.in_keys == ["observation", "action"]
 
 
-
 def test_network_onednn_linear_switches_every_layer_of_actor_and_critic_and_keeps_their_outputs():
     model = utils.make_model(config("env.num_envs=4"), torch.device("cpu"))
     built = {}

@@ -41,7 +41,7 @@ _linear = torch.ops.torchrl_silp.linear.default
 
 # below this many rows a oneDNN call's fixed cost outweighs its faster arithmetic: on an AMD EPYC,
 # an MLP of the recipes' shape runs its forward faster through oneDNN from ~96 rows on one thread
-# and ~192 on two (benchmarks/linear_layers.py); a collector's 32-row policy call stays on torch's
+# and ~256 on two (benchmarks/linear_layers.py); a collector's 32-row policy call stays on torch's
 MIN_ROWS = 128
 
 
@@ -105,10 +105,10 @@ class Linear(nn.Linear):
     and ``torch.func.vmap`` runs once per member of a vmapped ensemble.
     Float32 throughout: outputs and gradients equal ``nn.Linear``'s up to the
     order of the sums. A product of fewer than :data:`MIN_ROWS` rows (one
-    task's policy step, a collector's batch) takes torch's path: there
-    oneDNN's fixed cost per call outweighs its rate. So do other dtypes and
-    devices, and a torch build without oneDNN. Same parameters and state dict
-    as ``nn.Linear``.
+    task's policy step, a collector's step over 32 envs) takes torch's path:
+    there oneDNN's fixed cost per call outweighs its rate. So do other dtypes
+    and devices, and a torch build without oneDNN. Same parameters and state
+    dict as ``nn.Linear``.
 
     It pays where the products dominate: a compiled update of a few hundred
     rows on one thread. An eager backward pays the operator's Python autograd
