@@ -30,8 +30,8 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import platform
-import statistics
-import time
+import sys
+from pathlib import Path
 
 import torch
 
@@ -40,6 +40,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_silp.models import UR5eReach
 from torchrl_silp.modules.gp_exploration import GPGuidedExploration, fit_gp_hyperparameters, gp_posterior
+
+sys.path.insert(0, str(Path(__file__).parent))
+from timing import median_ms  # noqa: E402
 
 _has_gpytorch = importlib.util.find_spec("gpytorch") is not None
 
@@ -138,22 +141,6 @@ def module_inputs(model: UR5eReach, b: int, h: int, seed: int = 0) -> TensorDict
 def module_step(module: GPGuidedExploration, td: TensorDict) -> TensorDict:
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
         return module(td.clone())
-
-
-def median_ms(fn, reps: int, device: str = "cpu") -> float:
-    def sync():
-        if torch.device(device).type == "cuda":
-            torch.cuda.synchronize()
-
-    fn()  # warm-up
-    sync()
-    times = []
-    for _ in range(reps):
-        start = time.perf_counter()
-        fn()
-        sync()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
 
 
 def main() -> None:

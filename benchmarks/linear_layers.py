@@ -23,8 +23,8 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
+import sys
+from pathlib import Path
 
 import torch
 from torchrl.modules import MLP
@@ -32,18 +32,12 @@ from torchrl.modules import MLP
 from torchrl_silp.modules import ReLU, onednn_linear_available, with_onednn_linear
 from torchrl_silp.modules import linear as onednn_linear
 
+sys.path.insert(0, str(Path(__file__).parent))
+from timing import median_ms  # noqa: E402
+
 
 def best_median_us(fn, reps: int, repeats: int) -> float:
-    fn()
-    medians = []
-    for _ in range(repeats):
-        times = []
-        for _ in range(reps):
-            start = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - start)
-        medians.append(statistics.median(times))
-    return 1e6 * min(medians)
+    return 1e3 * min(median_ms(fn, reps) for _ in range(repeats))
 
 
 def main(argv: list[str] | None = None) -> dict:

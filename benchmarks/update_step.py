@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
 import time
 from functools import partial
@@ -56,6 +55,9 @@ from utils import (  # noqa: E402
 )
 
 from torchrl_silp.objectives import SILPLoss  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).parent))
+from timing import median_ms  # noqa: E402
 
 schema.register()
 
@@ -75,20 +77,6 @@ class _UnfusedModel:
     def step(self, state, action):
         nxt = self._model.transition(state, action)
         return (nxt, *self._model.outcome(state, nxt))
-
-
-def median_ms(fn, reps: int, device: torch.device = torch.device("cpu")) -> float:
-    # a CUDA call returns once its kernels are queued: wait for them before reading the clock
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    fn()
-    times = []
-    for _ in range(reps):
-        sync()
-        start = time.perf_counter()
-        fn()
-        sync()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
 
 
 def main(argv: list[str] | None = None) -> dict:
