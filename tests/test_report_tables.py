@@ -205,3 +205,43 @@ def test_sac_utd_block_sets_each_update_ratio_beside_table1s_sac_at_equal_frames
     assert cells("Table 1's `sac`")[2] == f"{at_40k.mean():.3f} ({at_40k.std():.3f})"
     row = cells("`sac_utd1` |")
     assert row[1:5] == ["1.0", "1", "64000", "64000"] and row[6] == f"{high[64_000]:.3f}" and row[7] == "0.500"
+
+
+def test_speed_tuning_block_names_each_rows_changed_setting_and_orders_rows_by_time_to_095(tmp_path):
+    def run(method: str, to_095: float | None, frames: int, updates: int, validation: float, **changed) -> None:
+        path = tmp_path / method / "seed0"
+        path.mkdir(parents=True)
+        (path / "summary.json").write_text(json.dumps(
+            {"success_rate": validation, "validation_success_rate": validation, "frames": frames, "updates": updates,
+             "train_wall_s": to_095 if to_095 is not None else 900.5, "time_to_095_s": to_095}))
+        config = {"seed": 0, "run_dir": str(path), "logger": {"exp_name": method},
+                  "eval": {"seed": 7, "test_seed": 7}, "collector": {"total_frames": 160_000},
+                  "optim": {"utd_ratio": 0.25, "batch_size": 256}, "env": {"num_envs": 32}}
+        for dotted, value in changed.items():
+            section, key = dotted.split("__")
+            config[section][key] = value
+        (path / "config.yaml").write_text(yaml.safe_dump(config))
+
+    run("tune_default", 257.4, 104_000, 24_200, 0.957)
+    run("tune_default_again", 301.0, 104_000, 24_200, 0.951)
+    run("tune_utd0.5", 330.0, 72_000, 32_000, 0.953, optim__utd_ratio=0.5)
+    run("tune_batch512_utd0.125", 190.2, 112_000, 12_000, 0.955, optim__batch_size=512, optim__utd_ratio=0.125)
+    run("tune_envs16", None, 150_000, 37_000, 0.94, env__num_envs=16)
+    text = report.main(["--block", "speed_tuning", "--results", str(tmp_path), "--out", str(tmp_path / "r.md")])
+    rows = [line for line in text.splitlines() if line.startswith("| `tune_")]
+    # the default first and last of the sweep, then the rows that reached 0.95 by their time to it, then the others
+    assert [r.split("|")[1].strip() for r in rows] == [
+        "`tune_default`", "`tune_default_again`", "`tune_batch512_utd0.125`", "`tune_utd0.5`", "`tune_envs16`"]
+    cells = [[c.strip() for c in r.strip("|").split("|")] for r in rows]
+    assert cells[0][1] == "none (the default)" and cells[1][1] == "none (the default)"
+    assert cells[2][1] == "`optim.batch_size=512`, `optim.utd_ratio=0.125`"
+    assert cells[2][3:] == ["1 of 1", "112,000", "12,000", "0:03:10", "0:03:10", "0.955"]
+    assert cells[0][7] == "0:04:17" and cells[3][7] == "0:05:30"  # 257.4 s and 330 s
+    assert cells[4][1] == "`env.num_envs=16`" and cells[4][3] == "0 of 1" and cells[4][6:8] == ["0:15:00", "—"]
+    test_tasks = report._schema_defaults()["eval.test_seed"]
+    assert (f"read the tasks of `eval.seed` 7, and so does its final evaluation (`eval.test_seed` 7): no tuning run "
+            f"reads the test tasks (`eval.test_seed` {test_tasks} by default)") in text
+    assert (tmp_path / "r.md").read_text().strip() == text
+    run("tune_on_test_tasks", 200.0, 96_000, 22_000, 0.96, eval__seed=test_tasks, eval__test_seed=test_tasks)
+    text = report.main(["--block", "speed_tuning", "--results", str(tmp_path), "--out", str(tmp_path / "r.md")])
+    assert f"**some read the test tasks** (`eval.test_seed` {test_tasks} by default)" in text
