@@ -1308,8 +1308,8 @@ def speed_tuning_block(runs: dict[str, list[dict]], results: Path, command: str)
             f"{sum(map(reached, method_runs))} of {len(method_runs)} | "
             f"{_mean_std_with(_values(method_runs, 'frames'), lambda v: f'{v:,.0f}')} | "
             f"{_mean_std_with(_values(method_runs, 'updates'), lambda v: f'{v:,.0f}')} | "
-            f"{hms(_mean(method_runs, 'train_wall_s') or 0.0)} | "
-            f"{hms(t) if (t := _mean(method_runs, 'time_to_095_s')) is not None else '—'} | "
+            f"{_mean_std_with(_values(method_runs, 'train_wall_s'), hms)} | "
+            f"{_mean_std_with(_values(method_runs, 'time_to_095_s'), hms)} | "
             f"{mean_std(_values(method_runs, 'validation_success_rate'))} |")
     # the test tasks are those of the schema's eval.test_seed; these runs set their own test_seed to eval.seed
     test_tasks = _schema_defaults()["eval.test_seed"]
@@ -1328,9 +1328,10 @@ def speed_tuning_block(runs: dict[str, list[dict]], results: Path, command: str)
         f"(`eval.test_seed` {', '.join(test_seeds)}): "
         + ("no tuning run reads the test tasks " if evaluated == "validation" else "**some read the test tasks** ")
         + f"(`eval.test_seed` {test_tasks} by default). "
-        "Training time is wall time without the evaluations, the update's compilation included; time to 0.95 "
-        "is the training time at the first evaluation at 0.95 or more. The default's own rows, first and "
-        "last in the sweep, show how far the machine's speed moved in between.",
+        "Frames, gradient updates and training time are at the run's stop, mean (std) over seeds. Training "
+        "time is wall time without the evaluations, the update's compilation included; time to 0.95 is the "
+        "training time at the first evaluation at 0.95 or more, over the runs that reached it. The default's "
+        "own rows, first and last in the sweep, show how far the machine's speed moved in between.",
         "",
         "\n".join(rows),
         "",

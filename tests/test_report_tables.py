@@ -208,13 +208,14 @@ def test_sac_utd_block_sets_each_update_ratio_beside_table1s_sac_at_equal_frames
 
 
 def test_speed_tuning_block_names_each_rows_changed_setting_and_orders_rows_by_time_to_095(tmp_path):
-    def run(method: str, to_095: float | None, frames: int, updates: int, validation: float, **changed) -> None:
-        path = tmp_path / method / "seed0"
+    def run(method: str, to_095: float | None, frames: int, updates: int, validation: float, seed: int = 0,
+            **changed) -> None:
+        path = tmp_path / method / f"seed{seed}"
         path.mkdir(parents=True)
         (path / "summary.json").write_text(json.dumps(
             {"success_rate": validation, "validation_success_rate": validation, "frames": frames, "updates": updates,
              "train_wall_s": to_095 if to_095 is not None else 900.5, "time_to_095_s": to_095}))
-        config = {"seed": 0, "run_dir": str(path), "logger": {"exp_name": method},
+        config = {"seed": seed, "run_dir": str(path), "logger": {"exp_name": method},
                   "eval": {"seed": 7, "test_seed": 7}, "collector": {"total_frames": 160_000},
                   "optim": {"utd_ratio": 0.25, "batch_size": 256}, "env": {"num_envs": 32}}
         for dotted, value in changed.items():
@@ -225,6 +226,7 @@ def test_speed_tuning_block_names_each_rows_changed_setting_and_orders_rows_by_t
     run("tune_default", 257.4, 104_000, 24_200, 0.957)
     run("tune_default_again", 301.0, 104_000, 24_200, 0.951)
     run("tune_utd0.5", 330.0, 72_000, 32_000, 0.953, optim__utd_ratio=0.5)
+    run("tune_utd0.5", 270.0, 56_000, 24_000, 0.957, seed=1, optim__utd_ratio=0.5)
     run("tune_batch512_utd0.125", 190.2, 112_000, 12_000, 0.955, optim__batch_size=512, optim__utd_ratio=0.125)
     run("tune_envs16", None, 150_000, 37_000, 0.94, env__num_envs=16)
     text = report.main(["--block", "speed_tuning", "--results", str(tmp_path), "--out", str(tmp_path / "r.md")])
@@ -236,7 +238,9 @@ def test_speed_tuning_block_names_each_rows_changed_setting_and_orders_rows_by_t
     assert cells[0][1] == "none (the default)" and cells[1][1] == "none (the default)"
     assert cells[2][1] == "`optim.batch_size=512`, `optim.utd_ratio=0.125`"
     assert cells[2][3:] == ["1 of 1", "112,000", "12,000", "0:03:10", "0:03:10", "0.955"]
-    assert cells[0][7] == "0:04:17" and cells[3][7] == "0:05:30"  # 257.4 s and 330 s
+    assert cells[0][7] == "0:04:17"  # 257.4 s
+    # two seeds: mean (std), the std of 330 and 270 s being 30 s
+    assert cells[3][2:8] == ["2", "2 of 2", "64,000 (8,000)", "28,000 (4,000)", "0:05:00 (0:00:30)", "0:05:00 (0:00:30)"]
     assert cells[4][1] == "`env.num_envs=16`" and cells[4][3] == "0 of 1" and cells[4][6:8] == ["0:15:00", "—"]
     test_tasks = report._schema_defaults()["eval.test_seed"]
     assert (f"read the tasks of `eval.seed` 7, and so does its final evaluation (`eval.test_seed` 7): no tuning run "
