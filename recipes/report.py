@@ -1221,12 +1221,16 @@ def default_config_variant_block(name: str, runs: dict[str, list[dict]], results
 UTD_BASELINE = "sac"  # Table 1's plain SAC (results/paper_budget), beside the sweep_utd runs
 
 
+def _is_setting(key: str) -> bool:
+    """Whether a flattened config key is a setting a run is compared on: not its name, directory or seed."""
+    return key not in ("run_dir", "seed") and not key.startswith("logger.")
+
+
 def _differing_settings(runs: dict[str, list[dict]]) -> list[str]:
     """The config keys whose values differ between the runs, the run's name, directory and seed aside."""
     flats = [_flatten(r["config"] or {}) for rs in runs.values() for r in rs]
     keys = set().union(*flats) if flats else set()
-    return sorted(k for k in keys if k not in ("run_dir", "seed") and not k.startswith("logger.")
-                  and len({repr(f.get(k)) for f in flats}) > 1)
+    return sorted(k for k in keys if _is_setting(k) and len({repr(f.get(k)) for f in flats}) > 1)
 
 
 def sac_utd_block(runs: dict[str, list[dict]], baseline: list[dict], results: Path, command: str) -> str:
@@ -1283,8 +1287,7 @@ TUNING_BASELINES = ("tune_default", "tune_default_again")  # sweep_speed_tuning'
 def _changed_settings(config: dict | None, baseline: dict | None) -> str:
     """``key=value`` for each config key whose value differs from ``baseline``'s (names, paths and the seed aside)."""
     flat, base = _flatten(config or {}), _flatten(baseline or {})
-    keys = sorted(k for k in set(flat) | set(base) if k not in ("run_dir", "seed") and not k.startswith("logger.")
-                  and flat.get(k) != base.get(k))
+    keys = sorted(k for k in set(flat) | set(base) if _is_setting(k) and flat.get(k) != base.get(k))
     return ", ".join(f"`{k}={flat.get(k)}`" for k in keys) or "none (the default)"
 
 
