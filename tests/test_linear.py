@@ -76,6 +76,37 @@ def test_batches_of_many_rows_go_through_onednn_and_single_rows_through_torch():
     assert "torchrl_silp.linear" not in calls.names
 
 
+@pytest.mark.parametrize("layout", ["contiguous", "transposed", "padded rows", "every other column"])
+def test_the_operator_multiplies_by_the_weights_values_whatever_its_strides(layout):
+    # the backward hands the operator transposed views (W^T, x^T) without copying them first
+    torch.manual_seed(0)
+    x, dense = torch.randn(200, 48), torch.randn(160, 48)
+    weight = {"contiguous": dense,
+              "transposed": dense.t().contiguous().t(),
+              "padded rows": torch.cat([dense, torch.randn(160, 7)], dim=1)[:, :48],
+              "every other column": torch.stack([dense, torch.randn_like(dense)], dim=-1)[..., 0]}[layout]
+    assert torch.equal(weight, dense)
+    out = torch.ops.torchrl_silp.linear(x, weight, None)
+    torch.testing.assert_close(out.double(), x.double() @ dense.double().T, atol=1e-4, rtol=1e-4)
+
+
+def test_the_backward_products_go_through_onednn_copying_only_the_gradients_transpose():
+    from torch.profiler import ProfilerActivity, profile
+
+    _, layer = pair(256, 256)
+    x = torch.randn(256, 256, requires_grad=True)
+    out = layer(x)
+    grad = torch.randn_like(out)
+    with Calls() as calls:
+        out.backward(grad, retain_graph=True)
+    assert calls.names.count("torchrl_silp.linear") == 2, calls.names  # the input's and the weight's gradients
+    with profile(activities=[ProfilerActivity.CPU]) as prof:  # it sees the operator's own calls too
+        out.backward(grad)
+    copies = [e.name for e in prof.events() if e.name in ("aten::clone", "aten::copy_")]
+    # grad^T, the weight gradient's left operand, which oneDNN would copy itself; not W^T nor x^T
+    assert copies == ["aten::clone", "aten::copy_"], copies
+
+
 @pytest.mark.parametrize("x_batched", [False, True])
 def test_a_vmapped_ensemble_computes_each_members_product_and_gradients(x_batched):
     members = [pair(24, 64, seed=k)[0] for k in range(3)]
