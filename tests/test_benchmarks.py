@@ -64,3 +64,24 @@ def test_the_onednn_rate_is_of_the_same_float32_product():
     # float32 rounding of 256-term sums of products of size ~1: ~1e-5; bfloat16 inputs would give ~1e-1
     assert onednn_error < 4 * torch_error + 1e-6 and onednn_error < 1e-4
     assert update_step.onednn_gemm_rate() > 0
+
+
+def test_the_update_is_timed_on_copies_of_the_batch_so_a_loss_writing_into_it_compiles_one_graph():
+    from tensordict import TensorDict
+
+    def loss(td):  # a loss that writes its output into the batch it reads, as TorchRL's do
+        td["td_error"] = (td["observation"] ** 2).sum(-1)
+        return td["td_error"].mean()
+
+    batch = TensorDict({"observation": torch.randn(8, 3), "next": {"observation": torch.randn(8, 3)}}, [8])
+    keys = set(batch.keys(True, True))
+    for on_copies, graphs in ((True, 1), (False, 2)):
+        torch._dynamo.reset()
+        torch._dynamo.utils.counters.clear()
+        compiled = torch.compile(loss, backend="eager")
+        call = update_step.on_the_batch(compiled, batch) if on_copies else (lambda: compiled(batch))
+        for _ in range(3):
+            assert call() == pytest.approx((batch["observation"] ** 2).sum(-1).mean().item())
+        assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
+        assert set(batch.keys(True, True)) == (keys if on_copies else keys | {"td_error"})
+    torch._dynamo.reset()
