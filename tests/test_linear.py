@@ -103,7 +103,7 @@ def test_the_backward_products_go_through_onednn_copying_only_the_gradients_tran
     with profile(activities=[ProfilerActivity.CPU]) as prof:  # it sees the operator's own calls too
         out.backward(grad)
     copies = [e.name for e in prof.events() if e.name in ("aten::clone", "aten::copy_")]
-    # grad^T, the weight gradient's left operand, which oneDNN would copy itself; not W^T nor x^T
+    # grad^T, the weight gradient's left operand, which oneDNN packs into rows itself; not W^T nor x^T
     assert copies == ["aten::clone", "aten::copy_"], copies
 
 
