@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 def on_the_batch(fn, batch):
-    """``fn`` called on a shallow copy of ``batch`` (~20 µs), as the recipe calls it on each fresh sample.
+    """``fn`` called on a shallow copy of ``batch`` (its tensors shared), as the recipe calls it on each fresh sample.
 
     The losses write their outputs (``td_error``, the actor's ``loc`` and ``scale``) into the batch they
     read. Called on the batch itself, a compiled loss would see those extra keys from its second call

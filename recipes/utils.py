@@ -80,10 +80,11 @@ def check_resume(cfg, run_dir: Path) -> bool:
         saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
         now = OmegaConf.to_container(cfg, resolve=True)
         for field in RESUME_FREE_FIELDS:
+            parent, _, leaf = field.rpartition(".")
             for tree in (saved, now):
-                parent, _, leaf = field.rpartition(".")
-                if isinstance(_dotted(tree, parent), dict):
-                    _dotted(tree, parent).pop(leaf, None)
+                node = _dotted(tree, parent)
+                if isinstance(node, dict):
+                    node.pop(leaf, None)
         for field in (*RESUME_FIELDS, *RESUME_PRESENCE_FIELDS):
             old, new = _dotted(saved, field), _dotted(now, field)
             if field in RESUME_PRESENCE_FIELDS:
@@ -203,11 +204,11 @@ def onednn_linear_of(cfg, device) -> bool:
     ``cfg.network.onednn_linear``, with ``auto`` resolved for the run.
 
     ``auto`` is true on a CPU run that has one torch thread when its networks are built (the recipes
-    set ``cfg.threads`` first; a sweep's runs get one CPU each), in a torch build with oneDNN. There oneDNN's AVX-512 products make
-    a batch-256 update faster than torch's, which on AMD CPUs are MKL's AVX2 ones. On two threads
-    torch's products close most of that gap and oneDNN's fixed cost per call takes the rest
-    (``docs/results.md``, section 5). A run saved before the field existed, and ``bc.py``'s actor
-    config, have none: torch's layers.
+    set ``cfg.threads`` first; a sweep's runs get one CPU each), in a torch build with oneDNN. There
+    oneDNN's AVX-512 products make a batch-256 update faster than torch's, which on AMD CPUs are MKL's
+    AVX2 ones. On two threads torch's products close most of that gap and oneDNN's fixed cost per call
+    takes the rest (``docs/results.md``, section 5). A run saved before the field existed, and
+    ``bc.py``'s actor config, have none: torch's layers.
     """
     value = cfg.network.get("onednn_linear", False)
     if not (isinstance(value, bool) or value == "auto"):

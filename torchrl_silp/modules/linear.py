@@ -35,8 +35,8 @@ except (AttributeError, RuntimeError):  # a torch build without oneDNN: Linear k
 def _linear_cpu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
     # oneDNN's linear flattens and packs the input itself. A weight laid out by rows or by columns (the
     # backward's W^T and x^T) goes in as it is: oneDNN reorders the weight into its own layout on every
-    # call anyway and reads either order at the same cost, where a transposing copy first costs a fifth
-    # of a 256 x 256 product on this CPU. This body runs on every layer call: each line costs a few µs.
+    # call anyway, reading either order, so a transposing copy first would only add a pass over it.
+    # This body runs on every layer call, so it does nothing else.
     if weight.stride(1) != 1 and weight.stride(0) != 1:
         weight = weight.contiguous()
     return _POINTWISE(x, weight, bias, "none", [], "")
