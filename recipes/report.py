@@ -533,6 +533,11 @@ def provenance_lines(runs: dict[str, list[dict]], budget_heading: str) -> list[s
     return lines
 
 
+def closed_block(lines: list[str], runs: dict[str, list[dict]], end: str) -> str:
+    """A block's text: ``lines``, then its runs' :func:`provenance_lines` and its ``end`` marker."""
+    return "\n".join([*lines, *provenance_lines(runs, "Budget (the runs' config.yaml):"), end])
+
+
 # ------------------------------------------------------------------ the block
 TABLE1_HEADINGS = {
     "table1": "### Table 1 at the paper's budget: success rate, training time, planning time (generated)",
@@ -1175,9 +1180,7 @@ def default_config_block(runs: dict[str, list[dict]], results: Path, command: st
     curve = success_by_frames(method_runs)
     if curve:
         lines += [success_by_frames_caption(method_runs), "", curve, ""]
-    lines += provenance_lines(runs, "Budget (the runs' config.yaml):")
-    lines.append(end)
-    return "\n".join(lines)
+    return closed_block(lines, runs, end)
 
 
 # the runs a setting of the default config was chosen on, read on the validation tasks (recipes/config/sweep_default.yaml
@@ -1213,9 +1216,7 @@ def default_config_variant_block(name: str, runs: dict[str, list[dict]], results
         tasks_table(runs),
         "",
     ]
-    lines += provenance_lines(runs, "Budget (the runs' config.yaml):")
-    lines.append(end)
-    return "\n".join(lines)
+    return closed_block(lines, runs, end)
 
 
 UTD_BASELINE = "sac"  # Table 1's plain SAC (results/paper_budget), beside the sweep_utd runs
@@ -1276,9 +1277,7 @@ def sac_utd_block(runs: dict[str, list[dict]], baseline: list[dict], results: Pa
         "\n".join(rows),
         "",
     ]
-    lines += provenance_lines(runs, "Budget (the runs' config.yaml):")
-    lines.append(end)
-    return "\n".join(lines)
+    return closed_block(lines, runs, end)
 
 
 TUNING_BASELINES = ("tune_default", "tune_default_again")  # sweep_speed_tuning's unchanged default, first and last
@@ -1339,9 +1338,7 @@ def speed_tuning_block(runs: dict[str, list[dict]], results: Path, command: str)
         "\n".join(rows),
         "",
     ]
-    lines += provenance_lines(runs, "Budget (the runs' config.yaml):")
-    lines.append(end)
-    return "\n".join(lines)
+    return closed_block(lines, runs, end)
 
 
 def speed_block(results: Path, command: str) -> str:
