@@ -17,9 +17,10 @@ its planned demonstrations, then times (median of ``--reps`` calls):
 into what it went to: matrix products, inductor's generated kernels, other ATen operators, the
 optimisers' steps, dynamo's guard checks, and what no operator accounts for (Python, autograd).
 
-Each part runs eager and compiled (``torch.compile`` of the loss or its term; the update
-through the recipe's own ``compile_update``, so ``compile.compile_mode`` applies and
-``compile.compile=false`` leaves it eager; ``--no-compile`` skips those), and the
+Each part runs eager and compiled (``torch.compile`` of the loss or its term with the recipe's
+``compile_kwargs``; the update through the recipe's own ``compile_update``, so ``compile.compile_mode``
+and ``compile.guards`` apply and ``compile.compile=false`` leaves it eager; ``--no-compile`` skips
+those), and the
 arithmetic floor of the update is printed beside: its matrix products' FLOPs at the rate
 this core reaches on a 256 x 256 x 256 product, measured in the same run, through torch's
 matmul and, on a CPU, through oneDNN's (the rate the core allows where torch's is lower).
@@ -31,6 +32,11 @@ Run::
     python benchmarks/update_step.py --threads 1 optim.batch_size=512
     python benchmarks/update_step.py --threads 1 --profile 50    # and where the compiled update's time goes
     python benchmarks/update_step.py env=panda_reach      # another task model (an env config group)
+    python benchmarks/update_step.py --threads 1 --against compile.guards=all   # and beside dynamo's every guard
+
+``--against OVERRIDE`` builds the compiled update a second time, with the override added, and times the
+two taking turns (rounds of 20 updates each), so both see the same machine: the A/B of one setting in one
+run, where two runs one after the other differ by the machine's own drift.
 """
 
 from __future__ import annotations
@@ -49,14 +55,14 @@ RECIPES = Path(__file__).parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
 import schema  # noqa: E402
 from utils import (  # noqa: E402
-    check_compile, compile_update, make_actor_critic, make_buffers, make_env, make_gradient_step, make_loss, make_model,
-    make_optimizers, resolve_device,
+    check_compile, compile_kwargs, compile_update, make_actor_critic, make_buffers, make_env, make_gradient_step,
+    make_loss, make_model, make_optimizers, resolve_device,
 )
 
 from torchrl_silp.objectives import SILPLoss  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
-from timing import median_ms  # noqa: E402
+from timing import interleaved_median_ms, median_ms  # noqa: E402
 
 schema.register()
 
@@ -85,42 +91,38 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-compile", dest="compile", action="store_false", help="eager figures only")
     parser.add_argument("--profile", type=int, default=0, metavar="N",
                         help="profile N compiled updates and print where their time goes")
+    parser.add_argument("--against", action="append", default=[], metavar="OVERRIDE",
+                        help="(repeatable) also build the compiled update with this hydra override added and time "
+                             "it beside this config's, the two taking turns, in --reps updates each")
     parser.add_argument("overrides", nargs="*", help="hydra overrides of recipes/config/sac_silp.yaml")
     args = parser.parse_args(argv)
     if args.profile < 0:
         parser.error(f"--profile must be a number of updates >= 0 (0: no profile), got {args.profile}")
+    if args.against and not args.compile:
+        parser.error("--against times two compiled updates; --no-compile has none")
     load = os.getloadavg()[0]  # before this benchmark's own work counts in it
     if args.threads:
         torch.set_num_threads(args.threads)
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        cfg = compose(config_name="sac_silp", overrides=args.overrides)
+    cfg = _config(args.overrides)
+    peer_cfg = _config(args.overrides + args.against) if args.against else None  # its errors before any work
     device = resolve_device(cfg)
-    check_compile(cfg, device)  # as the recipe's start_run does
+    for each in (cfg, peer_cfg) if peer_cfg is not None else (cfg,):
+        check_compile(each, device)  # as the recipe's start_run does
     if args.profile and device.type != "cpu":
         # the profiler's self times would be the host's kernel launches, not the device's work
         parser.error(f"--profile splits the update's CPU time; device={device.type} runs it elsewhere")
-    model = make_model(cfg, device)
-    env = make_env(cfg, model, device, seed=0)
-    actor, critic = make_actor_critic(cfg, model, env, device)
-    loss, updater = make_loss(cfg, actor, critic, model, env)
-    optimizers = make_optimizers(cfg, loss)
-    buffers = make_buffers(cfg, model, device)
-    with torch.no_grad():
-        episodes = env.rollout(cfg.env.max_steps, break_when_any_done=False)
-    buffers.extend(episodes)
-    if cfg.silp.demos:
-        buffers.demo_buffer.extend(episodes)
-    batch = buffers.sample()
-
-    gradient_step = make_gradient_step(loss, optimizers, updater)  # the recipe's update
+    loss, buffers, batch, gradient_step = _build(cfg, device)
 
     # name -> (eager call, maker of the compiled call); each compiled the way the recipe compiles it
     parts = {"sample": (buffers.sample, None)}
     if isinstance(loss, SILPLoss):
-        parts["rl loss"] = (on_the_batch(loss.rl_loss, batch), lambda: on_the_batch(torch.compile(loss.rl_loss), batch))
-        parts["bc loss"] = (on_the_batch(loss.bc_loss, batch), lambda: on_the_batch(torch.compile(loss.bc_loss), batch))
+        parts["rl loss"] = (on_the_batch(loss.rl_loss, batch),
+                            lambda: on_the_batch(torch.compile(loss.rl_loss, **compile_kwargs(cfg)), batch))
+        parts["bc loss"] = (on_the_batch(loss.bc_loss, batch),
+                            lambda: on_the_batch(torch.compile(loss.bc_loss, **compile_kwargs(cfg)), batch))
     else:
-        parts["rl loss"] = (on_the_batch(loss, batch), lambda: on_the_batch(torch.compile(loss), batch))
+        parts["rl loss"] = (on_the_batch(loss, batch),
+                            lambda: on_the_batch(torch.compile(loss, **compile_kwargs(cfg)), batch))
     compiled_update = []  # the update as compiled by its row, kept for --profile
 
     def make_compiled_update():
@@ -177,7 +179,39 @@ def main(argv: list[str] | None = None) -> dict:
               f"(torch.profiler, {args.profile} updates, self time per update):")
         for part, ms in figures["profile"].items():
             print(f"{part:>22s}  {ms:6.2f} ms")
+    if peer_cfg is not None:
+        peer_loss, _, peer_batch, peer_step = _build(peer_cfg, device)
+        peer = on_the_batch(compile_update(peer_cfg, peer_step), peer_batch)
+        ours = compiled_update[-1]
+        rounds = max(1, args.reps // 20)
+        figures["against"] = interleaved_median_ms({"this config": ours, "against": peer}, rounds, 20, device)
+        print(f"the compiled update beside the one with {' '.join(args.against)} "
+              f"(taking turns, {rounds} rounds of 20 updates each):")
+        this, other = figures["against"]["this config"], figures["against"]["against"]
+        print(f"{'this config':>22s}  {this:6.2f} ms")
+        print(f"{'with ' + ' '.join(args.against):>22s}  {other:6.2f} ms  ({other / this:.2f}x)")
     return figures
+
+
+def _config(overrides: list[str]):
+    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
+        return compose(config_name="sac_silp", overrides=overrides)
+
+
+def _build(cfg, device: torch.device):
+    """The recipe's loss, buffers (filled from one rollout and its demonstrations), a sampled batch and update."""
+    model = make_model(cfg, device)
+    env = make_env(cfg, model, device, seed=0)
+    actor, critic = make_actor_critic(cfg, model, env, device)
+    loss, updater = make_loss(cfg, actor, critic, model, env)
+    optimizers = make_optimizers(cfg, loss)
+    buffers = make_buffers(cfg, model, device)
+    with torch.no_grad():
+        episodes = env.rollout(cfg.env.max_steps, break_when_any_done=False)
+    buffers.extend(episodes)
+    if cfg.silp.demos:
+        buffers.demo_buffer.extend(episodes)
+    return loss, buffers, buffers.sample(), make_gradient_step(loss, optimizers, updater)
 
 
 def on_the_batch(fn, batch):

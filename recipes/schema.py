@@ -113,6 +113,7 @@ class CheckpointConfig:
 class CompileConfig:
     compile: bool = True
     compile_mode: Optional[str] = None
+    guards: str = "inputs"
     cudagraphs: bool = False
     warmup: int = 5
 

@@ -106,7 +106,10 @@ def _dotted(tree, field: str):
 def check_compile(cfg, device: torch.device) -> None:
     """Refuses a ``cfg.compile`` that cannot run on ``device``, naming the field."""
     comp = cfg.get("compile")
-    if comp is None or not comp.get("cudagraphs", False):
+    if comp is None:
+        return
+    compile_kwargs(cfg)  # refuses an unknown compile.guards
+    if not comp.get("cudagraphs", False):
         return
     if device.type != "cuda":
         raise ValueError(f"compile.cudagraphs captures the update in a CUDA graph: it needs device=cuda, "
@@ -428,8 +431,9 @@ def make_gradient_step(loss, optimizers: dict, updater) -> GradientStep:
 def compile_update(cfg, gradient_step):
     """``gradient_step`` compiled with ``torch.compile`` when ``cfg.compile.compile`` (TorchRL's SOTA recipes'
     switch), else itself: of a :class:`GradientStep`, its loss's forward (and so, through AOTAutograd, its
-    backward); any other callable whole. A first call whose compilation fails (e.g. no C++ compiler for
-    inductor's CPU code) warns and runs eagerly from then on.
+    backward); any other callable whole; with :func:`compile_kwargs` (``compile.compile_mode`` and
+    ``compile.guards``). A first call whose compilation fails (e.g. no C++ compiler for inductor's CPU
+    code) warns and runs eagerly from then on.
 
     With ``cfg.compile.cudagraphs`` the whole step (forward, backward, the optimisers' steps and the target
     update) is then captured in a CUDA graph by tensordict's ``CudaGraphModule``, as TorchRL's SOTA recipes
@@ -474,13 +478,56 @@ def _capture_cuda_graph(step, warmup: int):
     return call
 
 
+COMPILE_GUARDS = ("all", "inputs")
+
+
+def skip_module_and_global_guards(guard_entries) -> list[bool]:
+    """A ``guard_filter_fn`` for ``torch.compile``: dynamo's ``skip_guard_on_all_nn_modules_unsafe`` and
+    ``skip_guard_on_globals_unsafe`` together. What stays checked on each call: the compiled function's
+    own arguments (for the update, the batch: its keys, shapes, dtypes and devices) and torch's global
+    state (grad mode, default device)."""
+    keep_modules = torch.compiler.skip_guard_on_all_nn_modules_unsafe(guard_entries)
+    keep_globals = torch.compiler.skip_guard_on_globals_unsafe(guard_entries)
+    return [module and glob for module, glob in zip(keep_modules, keep_globals)]
+
+
+def compile_kwargs(cfg) -> dict:
+    """``torch.compile``'s keyword arguments for the update under ``cfg.compile``.
+
+    ``compile.compile_mode`` is the mode. ``compile.guards=inputs`` adds
+    :func:`skip_module_and_global_guards`. Dynamo otherwise checks, on every call, that
+    no attribute of the loss's modules and no global of the modules its code reads has
+    changed since it compiled: some thousand guards over TensorDict and TorchRL objects,
+    whose check is a visible part of a one-thread update. The recipes never
+    change their loss between updates, and its parameters change in place, so those
+    checks cannot fail. A script that changes a loss attribute mid-run (a coefficient, a
+    key, a swapped network) needs ``all``: under ``inputs`` the update keeps the graph
+    compiled before the change. ``all`` keeps every guard. Under ``inputs`` each
+    ``torch.compile`` call keeps its graphs to itself (``isolate_recompiles``), so another
+    loss of the same class, compiled in the same process, compiles its own.
+    """
+    guards = cfg.compile.get("guards", "all")
+    if guards not in COMPILE_GUARDS:
+        raise ValueError(f"compile.guards must be one of {COMPILE_GUARDS}, got {guards!r}")
+    mode = cfg.compile.compile_mode
+    if guards == "all":
+        return {"mode": mode}
+    from torch._inductor import list_mode_options
+
+    # torch.compile takes a mode or options, not both: the mode goes in as the options it stands for.
+    # isolate_recompiles: dynamo keeps compiled graphs per function, shared by every torch.compile of it;
+    # a graph that checks no module would run for any other loss of the same class, in whatever call
+    return {"options": {**list_mode_options(mode or "default"), "guard_filter_fn": skip_module_and_global_guards},
+            "isolate_recompiles": True}
+
+
 def _compile_loss(cfg, gradient_step):
     if not isinstance(gradient_step, GradientStep):
-        return _falling_back(torch.compile(gradient_step, mode=cfg.compile.compile_mode), gradient_step)
+        return _falling_back(torch.compile(gradient_step, **compile_kwargs(cfg)), gradient_step)
     # a new step on the same loss and optimisers; its first forward and backward (where inductor
     # compiles the backward) fall back on the eager ones together
     step = GradientStep(gradient_step.loss, gradient_step.optimizers, gradient_step.updater)
-    step.loss_fn = torch.compile(gradient_step.loss_fn, mode=cfg.compile.compile_mode)
+    step.loss_fn = torch.compile(gradient_step.loss_fn, **compile_kwargs(cfg))
     step.forward_backward = _falling_back(step.forward_backward, gradient_step.forward_backward,
                                           on_failure=step.zero_grad)
     return step

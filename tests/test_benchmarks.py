@@ -1,6 +1,7 @@
 """The benchmarks' own arithmetic (their figures are printed, never asserted on timings)."""
 
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -85,3 +86,27 @@ def test_the_update_is_timed_on_copies_of_the_batch_so_a_loss_writing_into_it_co
         assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
         assert set(batch.keys(True, True)) == (keys if on_copies else keys | {"td_error"})
     torch._dynamo.reset()
+
+
+def test_interleaved_timing_takes_turns_and_times_each_call_on_its_own():
+    import timing
+
+    calls = []
+    fns = {"fast": lambda: calls.append("fast"), "slow": lambda: (calls.append("slow"), time.sleep(0.002))}
+    medians = timing.interleaved_median_ms(fns, rounds=3, per_round=2)
+    # one warm-up call each, then rounds of per_round calls of each, in turn
+    assert calls == ["fast", "slow"] + ["fast", "fast", "slow", "slow"] * 3
+    assert medians["slow"] >= 2.0 > medians["fast"]
+
+
+def test_against_is_refused_without_compilation_and_a_bad_peer_override_before_anything_is_built(monkeypatch, capsys):
+    with pytest.raises(SystemExit):
+        update_step.main(["--no-compile", "--against", "compile.guards=all"])
+    assert "--against times two compiled updates; --no-compile has none" in capsys.readouterr().err
+
+    def build(*args, **kwargs):
+        raise AssertionError("built the model before refusing the peer's config")
+
+    monkeypatch.setattr(update_step, "make_model", build)
+    with pytest.raises(ValueError, match="compile.guards must be one of"):
+        update_step.main(["--against", "compile.guards=none"])
