@@ -35,7 +35,7 @@ Run::
     python benchmarks/update_step.py --threads 1 --against compile.guards=all   # and beside dynamo's every guard
 
 ``--against OVERRIDE`` builds the compiled update a second time, with the override added, and times the
-two taking turns (rounds of 20 updates each), so both see the same machine: the A/B of one setting in one
+two taking turns every 10 updates, so both see the same machine: the A/B of one setting in one
 run, where two runs one after the other differ by the machine's own drift.
 """
 
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> dict:
                         help="profile N compiled updates and print where their time goes")
     parser.add_argument("--against", action="append", default=[], metavar="OVERRIDE",
                         help="(repeatable) also build the compiled update with this hydra override added and time "
-                             "it beside this config's, the two taking turns, in --reps updates each")
+                             "it beside this config's, the two taking turns every 10 updates, --reps updates each")
     parser.add_argument("overrides", nargs="*", help="hydra overrides of recipes/config/sac_silp.yaml")
     args = parser.parse_args(argv)
     if args.profile < 0:
@@ -183,10 +183,10 @@ def main(argv: list[str] | None = None) -> dict:
         peer_loss, _, peer_batch, peer_step = _build(peer_cfg, device)
         peer = on_the_batch(compile_update(peer_cfg, peer_step), peer_batch)
         ours = compiled_update[-1]
-        rounds = max(1, args.reps // 20)
-        figures["against"] = interleaved_median_ms({"this config": ours, "against": peer}, rounds, 20, device)
+        rounds = max(1, args.reps // 10)
+        figures["against"] = interleaved_median_ms({"this config": ours, "against": peer}, rounds, 10, device)
         print(f"the compiled update beside the one with {' '.join(args.against)} "
-              f"(taking turns, {rounds} rounds of 20 updates each):")
+              f"(taking turns, {rounds} rounds of 10 updates each):")
         this, other = figures["against"]["this config"], figures["against"]["against"]
         print(f"{'this config':>22s}  {this:6.2f} ms")
         print(f"{'with ' + ' '.join(args.against):>22s}  {other:6.2f} ms  ({other / this:.2f}x)")
