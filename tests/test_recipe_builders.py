@@ -291,15 +291,23 @@ def _gradient_step_setup(cfg):
     return loss, buffers, utils.make_gradient_step(loss, optimizers, updater)
 
 
-def test_compiled_gradient_step_equals_the_eager_one():
-    """Two SAC-SILP+ updates from the same parameters, batch and random stream: compiled = eager."""
+@pytest.mark.parametrize("overrides", [
+    (),  # the main job: the BC term masked, one graph
+    # a filter: the BC rows selected, a shape that depends on the batch (graph breaks, dynamic shapes), under
+    # the default compile.guards=inputs, which drops the guards on the loss but keeps those on the batch
+    ("silp.filter=reward",),
+])
+def test_compiled_gradient_step_equals_the_eager_one(overrides):
+    """SAC-SILP+ updates from the same parameters, batches and random stream: compiled = eager."""
     import torch._inductor.config as inductor_config
 
-    cfg = config(*TINY, "network.hidden_sizes=[32,32]", "optim.batch_size=32", "compile.compile=true")
+    cfg = config(*TINY, "network.hidden_sizes=[32,32]", "optim.batch_size=32", "compile.compile=true", *overrides)
     loss, buffers, eager_step = _gradient_step_setup(cfg)
     start = {k: v.clone() for k, v in loss.state_dict().items()}
-    batches = [buffers.sample() for _ in range(2)]
+    batches = [buffers.sample() for _ in range(3)]
     assert batches[0]["is_demo"].any() and not batches[0]["is_demo"].all()
+    if overrides:  # the filter keeps a different number of rows in each batch
+        assert len({int(loss.bc_filter(b).sum()) for b in batches}) > 1
     rng = torch.get_rng_state()
     eager = [eager_step(b) for b in batches]
     after_eager = {k: v.clone() for k, v in loss.state_dict().items()}
