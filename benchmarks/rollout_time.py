@@ -1,8 +1,10 @@
 """Time per rollout of a trained policy, one task at a time and batched, against PRM's planning time.
 
-One task at a time runs three ways on the same tasks: through the TorchRL env
+One task at a time runs four ways on the same tasks: through the TorchRL env
 (``evaluate`` with one task), with :class:`~torchrl_silp.SingleTaskRollout` eager,
-and with it compiled (the policy and the model's step as one compiled function);
+and with it compiled (the policy and the model's step as one compiled function),
+with dynamo checking every guard before each step (``guards="all"``) and only the
+state (``guards="inputs"``, the default);
 the paper's 130 ms per rollout (its Table 1, SAC-SILP+ on its hardware) is printed beside them.
 
 Table 1's "planning time per rollout" of a learned planner is the wall time
@@ -76,28 +78,32 @@ def main(argv=None) -> None:
         successes += int(out["success_rate"])
     tasks = [ReachEnv(model, num_envs=1, seed=DEFAULT_TEST_SEED + 1 + i).reset()[0] for i in range(args.tasks)]
     fused = {}
-    for compiled in (False, True):
+    # eager, then compiled with each of dynamo's guard sets (SingleTaskRollout's guards), the default first:
+    # a compile under guards=inputs would otherwise find and run the graph that guards=all compiled before
+    for label, kwargs in (("SingleTaskRollout, eager:", {"compile": False}),
+                          ("SingleTaskRollout, compiled:", {"guards": "inputs"}),
+                          ("SingleTaskRollout, all guards:", {"guards": "all"})):
         rollout = SingleTaskRollout(actor, model, observation_transform=make_observation_transform(cfg, model),
-                                    max_steps=cfg.env.max_steps, compile=compiled)
+                                    max_steps=cfg.env.max_steps, **kwargs)
         start = time.perf_counter()
         rollout(tasks[0])  # warm-up (and the compilation)
         warm_up = time.perf_counter() - start
-        per_task, wins = [], 0
+        per_task, wins, steps = [], 0, 0
         for task in tasks:
             start = time.perf_counter()
-            wins += int(rollout(task)["success"])
+            out = rollout(task)
             per_task.append(time.perf_counter() - start)
-        fused[compiled] = (per_task, wins, warm_up)
+            wins, steps = wins + int(out["success"]), steps + int(out["steps"])
+        fused[label] = (per_task, wins, warm_up, steps)
     batched = run(1000, DEFAULT_TEST_SEED)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {args.threads}"
           f"{'' if load < 0.5 else f' (not alone: load average {load:.1f})'}")
     print(f"policy of {args.run_dir} ({cfg.env.name})")
     print(f"  one task at a time ({args.tasks} tasks), median per rollout:")
     print(f"    TorchRL env (evaluate, 1 task):    {statistics.median(times) * 1e3:6.1f} ms, success {successes}/{args.tasks}")
-    for compiled, (per_task, wins, warm_up) in fused.items():
-        label = "SingleTaskRollout, compiled:" if compiled else "SingleTaskRollout, eager:"
+    for label, (per_task, wins, warm_up, steps) in fused.items():
         print(f"    {label:<35s}{statistics.median(per_task) * 1e3:6.1f} ms, success {wins}/{args.tasks} "
-              f"(first call {warm_up:.1f} s)")
+              f"(first call {warm_up:.1f} s; {1e6 * sum(per_task) / steps:.0f} us per step)")
     print(f"    the paper (Table 1, SAC-SILP+):     {PAPER_MS_PER_ROLLOUT:6.1f} ms")
     print(f"  batched (1000 tasks, as in Table 1): {batched['time_per_rollout_s'] * 1e3:.3f} ms per rollout, "
           f"success {batched['success_rate']:.3f}")

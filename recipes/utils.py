@@ -31,6 +31,8 @@ from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
+from torchrl_silp.compiling import GUARDS
+from torchrl_silp.compiling import compile_kwargs as _compile_kwargs
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
 from torchrl_silp.models.learned_collision import load_collision_net, with_learned_edges
@@ -478,47 +480,16 @@ def _capture_cuda_graph(step, warmup: int):
     return call
 
 
-COMPILE_GUARDS = ("all", "inputs")
-
-
-def skip_module_and_global_guards(guard_entries) -> list[bool]:
-    """A ``guard_filter_fn`` for ``torch.compile``: dynamo's ``skip_guard_on_all_nn_modules_unsafe`` and
-    ``skip_guard_on_globals_unsafe`` together. What stays checked on each call: the compiled function's
-    own arguments (for the update, the batch: its keys, shapes, dtypes and devices) and torch's global
-    state (grad mode, default device)."""
-    keep_modules = torch.compiler.skip_guard_on_all_nn_modules_unsafe(guard_entries)
-    keep_globals = torch.compiler.skip_guard_on_globals_unsafe(guard_entries)
-    return [module and glob for module, glob in zip(keep_modules, keep_globals)]
-
-
 def compile_kwargs(cfg) -> dict:
-    """``torch.compile``'s keyword arguments for the update under ``cfg.compile``.
-
-    ``compile.compile_mode`` is the mode. ``compile.guards=inputs`` adds
-    :func:`skip_module_and_global_guards`. Dynamo otherwise checks, on every call, that
-    no attribute of the loss's modules and no global of the modules its code reads has
-    changed since it compiled: some thousand guards over TensorDict and TorchRL objects,
-    whose check is a visible part of a one-thread update. The recipes never
-    change their loss between updates, and its parameters change in place, so those
-    checks cannot fail. A script that changes a loss attribute mid-run (a coefficient, a
-    key, a swapped network) needs ``all``: under ``inputs`` the update keeps the graph
-    compiled before the change. ``all`` keeps every guard. Under ``inputs`` each
-    ``torch.compile`` call keeps its graphs to itself (``isolate_recompiles``), so another
-    loss of the same class, compiled in the same process, compiles its own.
-    """
+    """``torch.compile``'s keyword arguments for the update under ``cfg.compile``: its ``compile_mode``, and
+    with ``guards=inputs`` no checks on the loss's modules or on module globals before each call
+    (:func:`torchrl_silp.compiling.compile_kwargs`). The recipes build their loss once and change its
+    parameters only in place, so those checks cannot fail in their runs; a script that changes a loss
+    attribute mid-run needs ``compile.guards=all``."""
     guards = cfg.compile.get("guards", "all")
-    if guards not in COMPILE_GUARDS:
-        raise ValueError(f"compile.guards must be one of {COMPILE_GUARDS}, got {guards!r}")
-    mode = cfg.compile.compile_mode
-    if guards == "all":
-        return {"mode": mode}
-    from torch._inductor import list_mode_options
-
-    # torch.compile takes a mode or options, not both: the mode goes in as the options it stands for.
-    # isolate_recompiles: dynamo keeps compiled graphs per function, shared by every torch.compile of it;
-    # a graph that checks no module would run for any other loss of the same class, in whatever call
-    return {"options": {**list_mode_options(mode or "default"), "guard_filter_fn": skip_module_and_global_guards},
-            "isolate_recompiles": True}
+    if guards not in GUARDS:
+        raise ValueError(f"compile.guards must be one of {GUARDS}, got {guards!r}")
+    return _compile_kwargs(guards, cfg.compile.compile_mode)
 
 
 def _compile_loss(cfg, gradient_step):

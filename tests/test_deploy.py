@@ -47,16 +47,36 @@ def test_eager_rollout_is_the_env_episode(model_cls):
     assert (True, False) in outcomes and (False, False) in outcomes  # both kinds of episode were compared
 
 
-def test_compiled_rollout_matches_the_eager_one():
+@pytest.mark.parametrize("guards", ["inputs", "all"])
+def test_compiled_rollout_matches_the_eager_one(guards):
     model = UR5eReach()
     policy = tanh_policy(model, 0)
     eager = SingleTaskRollout(policy, model, max_steps=20, compile=False)
-    compiled = SingleTaskRollout(policy, model, max_steps=20, compile=True)
+    compiled = SingleTaskRollout(policy, model, max_steps=20, compile=True, guards=guards)
     for seed in range(4):
         task = ReachEnv(model, num_envs=1, seed=200 + seed).reset()[0]
         a, b = eager(task), compiled(task)
         assert int(a["steps"]) == int(b["steps"]) and bool(a["collision"]) == bool(b["collision"])
         torch.testing.assert_close(a["joint_position"], b["joint_position"])
+
+
+def test_two_compiled_rollouts_of_different_policies_each_run_their_own():
+    """Under guards=inputs neither the policy's structure nor its weights are checked before a step; each
+    rollout's compiled step is its own, and reads its policy's weights as they are now."""
+    model = UR5eReach()
+    wide, narrow = tanh_policy(model, 0), tanh_policy(model, 1)
+    narrow.module[0], narrow.module[2] = nn.Linear(narrow.module[0].in_features, 8), nn.Linear(8, model.action_dim)
+    task = ReachEnv(model, num_envs=1, seed=300).reset()[0]
+    for policy in (wide, narrow):
+        compiled = SingleTaskRollout(policy, model, max_steps=10)
+        torch.testing.assert_close(compiled(task)["action"],
+                                   SingleTaskRollout(policy, model, max_steps=10, compile=False)(task)["action"])
+    with torch.no_grad():  # new weights, loaded in place: the compiled step reads them
+        narrow.module[0].weight.mul_(-1.0)
+    torch.testing.assert_close(compiled(task)["action"],
+                               SingleTaskRollout(narrow, model, max_steps=10, compile=False)(task)["action"])
+    with pytest.raises(AttributeError, match="policy"):
+        compiled.policy = wide  # another policy needs another rollout
 
 
 def test_bad_input_is_refused():
@@ -65,6 +85,8 @@ def test_bad_input_is_refused():
         SingleTaskRollout(None, model)
     with pytest.raises(ValueError, match="max_steps"):
         SingleTaskRollout(tanh_policy(model, 0), model, max_steps=0)
+    with pytest.raises(ValueError, match="guards must be one of \\('all', 'inputs'\\), got 'none'"):
+        SingleTaskRollout(tanh_policy(model, 0), model, guards="none")
     run = SingleTaskRollout(tanh_policy(model, 0), model, compile=False)
     with pytest.raises(ValueError, match="one task"):
         run(model.sample_tasks(2))

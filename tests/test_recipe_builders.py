@@ -404,40 +404,10 @@ def test_cudagraphs_is_refused_where_it_cannot_run_naming_the_field():
     assert not Path("/nonexistent/never").exists()
 
 
-class _Scaled(torch.nn.Module):
-    """A module whose forward reads a plain attribute: dynamo bakes its value into the graph and guards it."""
-
-    def __init__(self, factor: float):
-        super().__init__()
-        self.factor = factor
-
-    def forward(self, td):
-        return td["x"] * self.factor
-
-
-def test_compile_guards_inputs_keeps_the_batch_guards_and_each_compile_its_own_graphs():
-    from tensordict import TensorDict
-
-    batch = lambda n, dtype=torch.float32: TensorDict(x=torch.arange(n, dtype=dtype), batch_size=[n])  # noqa: E731
-    for guards in ("inputs", "all"):  # inputs first: its graphs, which check no module, must not serve the others
-        modules = [_Scaled(2.0), _Scaled(5.0)]  # two losses of one class, as two runs in one process
-        compiled = [torch.compile(m, **utils.compile_kwargs(config(f"compile.guards={guards}"))) for m in modules]
-        for module, fn in zip(modules, compiled):
-            torch.testing.assert_close(fn(batch(4)), module.factor * torch.arange(4.0), msg=guards)
-            # the batch is checked either way: another shape or dtype compiles anew
-            torch.testing.assert_close(fn(batch(7)), module.factor * torch.arange(7.0), msg=guards)
-            torch.testing.assert_close(fn(batch(4, torch.float64)),
-                                       module.factor * torch.arange(4.0, dtype=torch.float64), msg=guards)
-        modules[0].factor = 3.0
-        # all: the changed attribute fails a guard and compiles anew; inputs: the graph compiled before runs
-        expected = 3.0 if guards == "all" else 2.0
-        torch.testing.assert_close(compiled[0](batch(4)), expected * torch.arange(4.0), msg=guards)
-    # and a plain torch.compile after them compiles its own
-    torch.testing.assert_close(torch.compile(_Scaled(7.0))(batch(4)), 7.0 * torch.arange(4.0))
-
-
 def test_compile_kwargs_pass_the_mode_as_options_beside_the_guard_filter_and_refuse_an_unknown_guards():
     from torch._inductor import list_mode_options
+
+    from torchrl_silp.compiling import skip_module_and_global_guards
 
     assert utils.compile_kwargs(config("compile.guards=all", "compile.compile_mode=max-autotune")) == {
         "mode": "max-autotune"}
@@ -445,7 +415,7 @@ def test_compile_kwargs_pass_the_mode_as_options_beside_the_guard_filter_and_ref
     # torch.compile refuses mode= beside options=: the mode's own options, and the filter
     assert set(kwargs) == {"options", "isolate_recompiles"}
     assert kwargs["options"] == {**list_mode_options("max-autotune"),
-                                 "guard_filter_fn": utils.skip_module_and_global_guards}
+                                 "guard_filter_fn": skip_module_and_global_guards}
     assert kwargs["options"]["max_autotune"] is True and kwargs["isolate_recompiles"] is True
     with pytest.raises(ValueError, match="compile.guards must be one of \\('all', 'inputs'\\), got 'none'"):
         utils.check_compile(config("compile.guards=none"), torch.device("cpu"))

@@ -6,6 +6,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_silp.compiling import GUARDS, compile_kwargs
 from torchrl_silp.models.base import as_model
 
 __all__ = ["SingleTaskRollout"]
@@ -27,6 +28,10 @@ class SingleTaskRollout:
     and the value checks (NaN, inverted boxes) are skipped: give it tasks that
     :meth:`~torchrl_silp.models.TaskModel.sample_tasks` or an env produced.
 
+    The policy, the model and the transform are fixed at construction (read-only attributes):
+    build another rollout for another policy. Their parameters may change in place (a
+    ``load_state_dict``), which the compiled step reads on each call.
+
     Args:
         policy: a TensorDict module writing ``"action"`` (e.g. the trained actor).
         model: the :class:`~torchrl_silp.models.TaskModel` (or an env holding one).
@@ -34,6 +39,12 @@ class SingleTaskRollout:
             :class:`~torchrl.envs.CatTensors` by default).
         max_steps: episode length.
         compile: compile the step (``torch.compile``, on the first call).
+        guards: what dynamo checks before each compiled step
+            (:func:`~torchrl_silp.compiling.compile_kwargs`): ``"inputs"``, the state only, or
+            ``"all"``, also every attribute of the policy's and the transform's modules and the
+            globals their code reads. A step of one task is small, and those checks are a large
+            part of it. With ``"inputs"``, a module attribute changed after the first call (not a
+            parameter) goes unseen: the step keeps the graph compiled before the change.
 
     Examples:
         >>> import torch
@@ -47,20 +58,36 @@ class SingleTaskRollout:
         (torch.Size([6, 3]), False, 5)
     """
 
-    def __init__(self, policy, model, *, observation_transform=None, max_steps: int = 50, compile: bool = True):
+    def __init__(self, policy, model, *, observation_transform=None, max_steps: int = 50, compile: bool = True,
+                 guards: str = "inputs"):
         if not callable(policy):
             raise TypeError(f"policy must be a TensorDict module or a callable td -> td, got {type(policy).__name__}")
         if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
             raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
         if not isinstance(compile, bool):
             raise TypeError(f"compile must be a bool, got {compile!r}")
-        self.policy = policy
-        self.model = as_model(model)
-        self.observation_transform = (
-            self.model.observation_transform() if observation_transform is None else observation_transform
+        if guards not in GUARDS:
+            raise ValueError(f"guards must be one of {GUARDS}, got {guards!r}")
+        self._policy = policy
+        self._model = as_model(model)
+        self._observation_transform = (
+            self._model.observation_transform() if observation_transform is None else observation_transform
         )
         self.max_steps = max_steps
-        self._step = torch.compile(self._eager_step, dynamic=False) if compile else self._eager_step
+        self._step = (torch.compile(self._eager_step, dynamic=False, **compile_kwargs(guards)) if compile
+                      else self._eager_step)
+
+    @property
+    def policy(self):
+        return self._policy
+
+    @property
+    def model(self):
+        return self._model
+
+    @property
+    def observation_transform(self):
+        return self._observation_transform
 
     def _eager_step(self, state: TensorDictBase):
         inputs = self.observation_transform(state.clone(False))
