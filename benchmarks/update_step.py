@@ -20,8 +20,7 @@ optimisers' steps, dynamo's guard checks, and what no operator accounts for (Pyt
 Each part runs eager and compiled (``torch.compile`` of the loss or its term with the recipe's
 ``compile_kwargs``; the update through the recipe's own ``compile_update``, so ``compile.compile_mode``
 and ``compile.guards`` apply and ``compile.compile=false`` leaves it eager; ``--no-compile`` skips
-those), and the
-arithmetic floor of the update is printed beside: its matrix products' FLOPs at the rate
+those), and the arithmetic floor of the update is printed beside: its matrix products' FLOPs at the rate
 this core reaches on a 256 x 256 x 256 product, measured in the same run, through torch's
 matmul and, on a CPU, through oneDNN's (the rate the core allows where torch's is lower).
 
@@ -180,7 +179,7 @@ def main(argv: list[str] | None = None) -> dict:
         for part, ms in figures["profile"].items():
             print(f"{part:>22s}  {ms:6.2f} ms")
     if peer_cfg is not None:
-        peer_loss, _, peer_batch, peer_step = _build(peer_cfg, device)
+        _, _, peer_batch, peer_step = _build(peer_cfg, device)
         peer = on_the_batch(compile_update(peer_cfg, peer_step), peer_batch)
         ours = compiled_update[-1]
         rounds = max(1, args.reps // 10)
