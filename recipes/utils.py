@@ -31,7 +31,6 @@ from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
-from torchrl_silp.compiling import GUARDS
 from torchrl_silp.compiling import compile_kwargs as _compile_kwargs
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
@@ -486,10 +485,7 @@ def compile_kwargs(cfg) -> dict:
     (:func:`torchrl_silp.compiling.compile_kwargs`). The recipes build their loss once and change its
     parameters only in place, so those checks cannot fail in their runs; a script that changes a loss
     attribute mid-run needs ``compile.guards=all``."""
-    guards = cfg.compile.get("guards", "all")
-    if guards not in GUARDS:
-        raise ValueError(f"compile.guards must be one of {GUARDS}, got {guards!r}")
-    return _compile_kwargs(guards, cfg.compile.compile_mode)
+    return _compile_kwargs(cfg.compile.get("guards", "all"), cfg.compile.compile_mode, name="compile.guards")
 
 
 def _compile_loss(cfg, gradient_step):

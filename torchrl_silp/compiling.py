@@ -22,7 +22,7 @@ def skip_module_and_global_guards(guard_entries) -> list[bool]:
     return [module and glob for module, glob in zip(keep_modules, keep_globals)]
 
 
-def compile_kwargs(guards: str = "inputs", mode: str | None = None) -> dict:
+def compile_kwargs(guards: str = "inputs", mode: str | None = None, *, name: str = "guards") -> dict:
     """``torch.compile``'s keyword arguments for a function compiled once and called many times.
 
     Before each call of a compiled function, dynamo checks its guards: that no attribute of
@@ -41,6 +41,7 @@ def compile_kwargs(guards: str = "inputs", mode: str | None = None) -> dict:
             changed module global: it keeps running the graph compiled before the change.
             ``"all"`` keeps every guard, for code that changes those between calls.
         mode: ``torch.compile``'s mode.
+        name: what the error for an unknown ``guards`` calls it (a config field, for a recipe).
 
     Under ``"inputs"`` each ``torch.compile`` call keeps its compiled graphs to itself
     (``isolate_recompiles``): dynamo otherwise shares them among every compile of the same
@@ -55,7 +56,7 @@ def compile_kwargs(guards: str = "inputs", mode: str | None = None) -> dict:
         torch.Size([4, 2])
     """
     if guards not in GUARDS:
-        raise ValueError(f"guards must be one of {GUARDS}, got {guards!r}")
+        raise ValueError(f"{name} must be one of {GUARDS}, got {guards!r}")
     if guards == "all":
         return {"mode": mode}
     from torch._inductor import list_mode_options

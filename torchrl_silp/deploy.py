@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_silp.compiling import GUARDS, compile_kwargs
+from torchrl_silp.compiling import compile_kwargs
 from torchrl_silp.models.base import as_model
 
 __all__ = ["SingleTaskRollout"]
@@ -66,16 +66,14 @@ class SingleTaskRollout:
             raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
         if not isinstance(compile, bool):
             raise TypeError(f"compile must be a bool, got {compile!r}")
-        if guards not in GUARDS:
-            raise ValueError(f"guards must be one of {GUARDS}, got {guards!r}")
+        compiling = compile_kwargs(guards)  # refuses an unknown guards, compiled or not
         self._policy = policy
         self._model = as_model(model)
         self._observation_transform = (
             self._model.observation_transform() if observation_transform is None else observation_transform
         )
         self.max_steps = max_steps
-        self._step = (torch.compile(self._eager_step, dynamic=False, **compile_kwargs(guards)) if compile
-                      else self._eager_step)
+        self._step = torch.compile(self._eager_step, dynamic=False, **compiling) if compile else self._eager_step
 
     @property
     def policy(self):
