@@ -200,7 +200,12 @@ def plan(cfg: DictConfig, check_configs: bool = True) -> list[Run]:
 
     for method in methods:
         visit(method, ())
-    runs = [make_run(m, s) for m in ordered for s in seeds]
+    if cfg.get("order", "method") not in ("method", "seed"):
+        raise ValueError(f"order must be 'method' or 'seed', got {cfg.get('order')!r}")
+    if cfg.get("order", "method") == "seed":  # every method's seed 0 first: a stopped sweep has whole seeds
+        runs = [make_run(m, s) for s in seeds for m in ordered]
+    else:
+        runs = [make_run(m, s) for m in ordered for s in seeds]
     for run in runs:
         if run.after is not None and run.after not in methods:
             upstream = results_dir / run.after / f"seed{run.seed}" / "summary.json"

@@ -429,3 +429,30 @@ def test_the_old_flat_observation_api_is_a_deprecated_alias_of_the_model():
         free = env.edge_collision_free(td["joint_position"], q_to, td["obstacle"])
     flags, _ = model.motion_collision_flags(td["joint_position"], q_to, td.select("obstacle"))
     assert torch.equal(free, flags.squeeze(-1) == 0)
+
+
+def test_table_contact_blocked():
+    # walk the elbow down from a low pose until a step would put a sphere below the table
+    model = UR5eReach(table_contact="block")
+    strict = UR5eReach()
+    q = torch.tensor([[0.5, -1.5, 1.5]])
+    down = torch.tensor([[0.0, 0.0, 1.0]])
+    state = model.state_at(q, TensorDict(obstacle=FAR_BOX.expand(1, 6).clone(), batch_size=[1]), model.robot.fk(q + 0.2))
+    assert not model.collides(q, state.select("obstacle")).item()
+    for _ in range(30):
+        q_next = model.next_config(state["joint_position"], down)
+        if strict.collision_flags(q_next, state.select("obstacle"))[0].item() & CollisionReason.TABLE:
+            break
+        state = model.transition(state, down)
+    else:
+        pytest.fail("lowering the elbow never reached the table")
+    # the strict model counts the step as a collision; the blocking one stays where it is, free
+    _, _, hit, _, flags = strict.step(state, down)
+    assert hit.item() and flags.item() & CollisionReason.TABLE
+    nxt, reward, hit, success, _ = model.step(state, down)
+    assert torch.equal(nxt["joint_position"], state["joint_position"])
+    assert not hit.item()
+    dist = (state["achieved_goal"] - state["desired_goal"]).norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(reward, -dist)
+    with pytest.raises(ValueError, match="table_contact"):
+        UR5eReach(table_contact="clip")

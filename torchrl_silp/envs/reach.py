@@ -228,7 +228,7 @@ class UR5eReachEnv(TransformedEnv):
     Args:
         num_envs, batch_size, device, seed, max_steps: see :class:`ReachEnv`.
         collision_type: 0, 1, 2 or None.
-        success_distance, workspace_exit, task_branch, motion_resolution, compile_collision:
+        success_distance, workspace_exit, table_contact, task_branch, motion_resolution, compile_collision:
             see :class:`~torchrl_silp.models.UR5eReach`.
         robot: a :class:`~torchrl_silp.robot.UR5e` to share.
         dtype: floating dtype of the model, observations and actions.
@@ -265,10 +265,11 @@ class UR5eReachEnv(TransformedEnv):
         workspace_exit: str = "collision",
         task_branch: str = "front",
         motion_resolution: float = 0.01,
+        table_contact: str = "collision",
     ):
         model = UR5eReach(
             robot, success_distance=success_distance, motion_resolution=motion_resolution,
-            workspace_exit=workspace_exit, task_branch=task_branch, compile_collision=compile_collision,
+            workspace_exit=workspace_exit, table_contact=table_contact, task_branch=task_branch, compile_collision=compile_collision,
             device=device, dtype=dtype,
         )
         base = ReachEnv(model, num_envs, batch_size=batch_size, device=device, seed=seed, max_steps=max_steps)

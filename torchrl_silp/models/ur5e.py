@@ -12,9 +12,10 @@ from torchrl_silp.models.arm import ArmReach
 from torchrl_silp.models.base import _check_finite, _check_tensor, check_boxes
 from torchrl_silp.robot import UR5e
 
-__all__ = ["UR5eReach", "TASK_BRANCHES", "WORKSPACE_EXIT_MODES"]
+__all__ = ["UR5eReach", "TASK_BRANCHES", "WORKSPACE_EXIT_MODES", "TABLE_CONTACT_MODES"]
 
 WORKSPACE_EXIT_MODES = ("collision", "block")
+TABLE_CONTACT_MODES = ("collision", "block")
 TASK_BRANCHES = ("front", "any")
 
 
@@ -75,6 +76,7 @@ class UR5eReach(ArmReach):
         motion_resolution: float = 0.01,
         conservative: bool = True,
         workspace_exit: str = "collision",
+        table_contact: str = "collision",
         task_branch: str = "front",
         compile_collision: bool = False,
         device: torch.device | str | None = None,
@@ -82,6 +84,8 @@ class UR5eReach(ArmReach):
     ):
         if workspace_exit not in WORKSPACE_EXIT_MODES:
             raise ValueError(f"workspace_exit must be one of {WORKSPACE_EXIT_MODES}, got {workspace_exit!r}")
+        if table_contact not in TABLE_CONTACT_MODES:
+            raise ValueError(f"table_contact must be one of {TABLE_CONTACT_MODES}, got {table_contact!r}")
         if task_branch not in TASK_BRANCHES:
             raise ValueError(f"task_branch must be one of {TASK_BRANCHES}, got {task_branch!r}")
         if not isinstance(compile_collision, bool):
@@ -91,6 +95,7 @@ class UR5eReach(ArmReach):
             conservative=conservative, device=device, dtype=dtype,
         )
         self.workspace_exit = workspace_exit
+        self.table_contact = table_contact
         self.task_branch = task_branch
         self.compile_collision = compile_collision
         self._kernel = self._collision_kernel
@@ -103,23 +108,38 @@ class UR5eReach(ArmReach):
         self._compiled_signatures: set = set()
 
     # ------------------------------------------------------------ kinematics
+    @property
+    def blocks_steps(self) -> bool:
+        """Whether some steps are not taken (``workspace_exit`` or ``table_contact`` is ``"block"``)."""
+        return self.workspace_exit == "block" or self.table_contact == "block"
+
     def transition(self, state: TensorDictBase, action: torch.Tensor) -> TensorDict:
         out = super().transition(state, action)
-        if self.workspace_exit == "block":
-            self._block_workspace_exit(state, out)
+        if self.blocks_steps:
+            self._block_steps(state, out)
         return out
 
     def step(self, state, action):
-        if self.workspace_exit == "block":
+        if self.blocks_steps:
             # a blocked step falls back on the previous state
             nxt = self.transition(state, action)
             return (nxt, *self.outcome(state, nxt))
         return super().step(state, action)
 
-    def _block_workspace_exit(self, state: TensorDictBase, nxt: TensorDictBase) -> None:
-        out = ~in_box(nxt.get(self.achieved_goal_key), self.workspace_low, self.workspace_high).unsqueeze(-1)
+    def _block_steps(self, state: TensorDictBase, nxt: TensorDictBase) -> None:
+        # judged where the step ends, exactly, as the arm's controller would refuse the target
+        blocked = torch.zeros(nxt.batch_size, dtype=torch.bool, device=nxt.device)
+        if self.workspace_exit == "block":
+            blocked = blocked | ~in_box(nxt.get(self.achieved_goal_key), self.workspace_low, self.workspace_high)
+        if self.table_contact == "block":
+            config = nxt.get(self.config_key)
+            centres, _ = self.robot.spheres_and_tcp(config.reshape(-1, self.config_dim))
+            mask, r = self.robot.table_mask, self.robot.sphere_radii
+            below = (centres[:, mask, 2] < r[mask]).any(-1).reshape(config.shape[:-1])
+            blocked = blocked | below
+        blocked = blocked.unsqueeze(-1)
         for key in (self.config_key, self.achieved_goal_key):
-            nxt.set(key, torch.where(out, state.get(key).to(nxt.get(key).dtype), nxt.get(key)))
+            nxt.set(key, torch.where(blocked, state.get(key).to(nxt.get(key).dtype), nxt.get(key)))
 
     # ------------------------------------------------------------- collisions
     def collision_flags(self, config, scene, margin=None):
