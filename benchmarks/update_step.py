@@ -21,8 +21,7 @@ Each part runs eager and compiled (``torch.compile`` of the loss or its term wit
 ``compile_kwargs``; the update through the recipe's own ``compile_update``, so ``compile.compile_mode``
 and ``compile.guards`` apply and ``compile.compile=false`` leaves it eager; ``--no-compile`` skips
 those), and the arithmetic floor of the update is printed beside: its matrix products' FLOPs at the rate
-this core reaches on a 256 x 256 x 256 product, measured in the same run, through torch's
-matmul and, on a CPU, through oneDNN's (the rate the core allows where torch's is lower).
+this core reaches on a 256 x 256 x 256 product through torch's matmul, measured in the same run.
 
 Run::
 
@@ -167,10 +166,6 @@ def main(argv: list[str] | None = None) -> dict:
     floor_ms = 1e3 * flops / torch_rate
     print(f"{'matmul floor of update':>22s}  {floor_ms:6.2f} ms  (its matrix products at this "
           f"{'device' if device.type == 'cuda' else 'core'}'s 256^3 rate)")
-    onednn = onednn_gemm_rate() if device.type == "cpu" else None
-    if onednn is not None:
-        print(f"{'at oneDNN rate':>22s}  {1e3 * flops / onednn:6.2f} ms  (the same products at oneDNN's "
-              f"float32 256^3 rate: {onednn / 1e9:.0f} against torch's {torch_rate / 1e9:.0f} GFLOP/s)")
     if args.profile:
         update = compiled_update[-1] if compiled_update else on_the_batch(gradient_step, batch)
         figures["profile"] = profile_update(update, args.profile)
@@ -227,8 +222,7 @@ def on_the_batch(fn, batch):
 # what each profiled event's self time is spent on; the first matching rule wins, the rest is "other ATen"
 TIME_PARTS = (
     ("matrix products", lambda name: name in {"aten::mm", "aten::bmm", "aten::addmm", "aten::baddbmm",
-                                              "aten::addbmm", "aten::addmv", "aten::mv", "aten::dot",
-                                              "mkldnn::_linear_pointwise"}),  # torchrl_silp.modules.Linear's
+                                              "aten::addbmm", "aten::addmv", "aten::mv", "aten::dot"}),
     ("inductor kernels", lambda name: name.startswith("## Call CompiledFxGraph")),
     ("optimiser steps", lambda name: name.startswith(("Optimizer.", "aten::_fused_adam"))),
     ("dynamo guards", lambda name: name == "TorchDynamo Cache Lookup"),
@@ -273,22 +267,6 @@ def gemm_rate(device: torch.device = torch.device("cpu")) -> float:
     return 2 * 256**3 / (median_ms(lambda: a @ b, 200, device) / 1e3)
 
 
-def onednn_gemm_rate() -> float | None:
-    """FLOP/s of the same float32 product through oneDNN's matmul (``None`` without it).
-
-    torch's CPU matmul calls MKL, whose float32 kernels on an AMD CPU are its AVX2
-    ones; oneDNN, also in torch's CPU build, uses the AVX-512 units, so its rate is
-    the one the core allows. Exact float32 both ways: no reduced-precision math.
-    """
-    from torchrl_silp.modules import onednn_linear_available
-
-    if not onednn_linear_available():
-        return None
-    a, w = torch.randn(256, 256), torch.randn(256, 256)
-    linear = torch.ops.mkldnn._linear_pointwise
-    return 2 * 256**3 / (median_ms(lambda: linear(a, w, None, "none", [], ""), 200, torch.device("cpu")) / 1e3)
-
-
 def update_flops(cfg, loss, batch) -> float:
     """The FLOPs of the update's matrix products, counted by torch's FLOP counter on one update."""
     from torch.utils._python_dispatch import TorchDispatchMode
@@ -302,8 +280,6 @@ def update_flops(cfg, loss, batch) -> float:
             rule = flop_registry.get(func._overloadpacket)
             if rule is not None:
                 Count.total += rule(*args, **(kwargs or {}), out_val=out)
-            elif func._overloadpacket is torch.ops.torchrl_silp.linear:  # x (..., in) @ weight (out, in)^T
-                Count.total += 2 * args[0].numel() * args[1].shape[0]
             return out
 
     with Count():

@@ -79,7 +79,6 @@ class NetworkConfig:
     hidden_sizes: list[int] = field(default_factory=lambda: [256, 256])
     goal_relative: bool = True
     next_tcp_feature: bool = True
-    onednn_linear: Any = "auto"  # true, false or "auto" (utils.onednn_linear_of)
 
 
 @dataclass

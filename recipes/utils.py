@@ -35,7 +35,7 @@ from torchrl_silp.compiling import compile_kwargs as _compile_kwargs
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, cut_episodes, transition_keys
 from torchrl_silp.models import make_model as _make_model
 from torchrl_silp.models.learned_collision import load_collision_net, with_learned_edges
-from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ, ReLU, onednn_linear_available, with_onednn_linear
+from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ
 from torchrl_silp.objectives import DEMO_ROWS
 
 EXPLORATION_MODES = ("gp", "random", "none")
@@ -54,8 +54,8 @@ RESUME_FIELDS = ("algorithm", "env.name", "env.model", "env.num_envs", "env.max_
                  "source", "source_run_dir")
 # fields whose presence (set or null) must match; their value may change on resume
 RESUME_PRESENCE_FIELDS = ("eval.actor_average_decay",)
-# fields inside RESUME_FIELDS that may change on resume: how the same parameters are computed
-RESUME_FREE_FIELDS = ("network.onednn_linear",)
+# fields an older run's config.yaml may hold that no longer exist: ignored on resume, with a notice
+RESUME_RETIRED_FIELDS = ("network.onednn_linear",)
 RESUME_MODES = (False, True, "must")
 
 
@@ -80,12 +80,11 @@ def check_resume(cfg, run_dir: Path) -> bool:
     if saved_path.exists():
         saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
         now = OmegaConf.to_container(cfg, resolve=True)
-        for field in RESUME_FREE_FIELDS:
+        for field in RESUME_RETIRED_FIELDS:
             parent, _, leaf = field.rpartition(".")
-            for tree in (saved, now):
-                node = _dotted(tree, parent)
-                if isinstance(node, dict):
-                    node.pop(leaf, None)
+            node = _dotted(saved, parent)
+            if isinstance(node, dict) and leaf in node:
+                print(f"resume: {field}={node.pop(leaf)!r} in {saved_path} no longer exists and is ignored")
         for field in (*RESUME_FIELDS, *RESUME_PRESENCE_FIELDS):
             old, new = _dotted(saved, field), _dotted(now, field)
             if field in RESUME_PRESENCE_FIELDS:
@@ -203,28 +202,8 @@ def make_env(cfg, model, device, seed: int, primers=()) -> TransformedEnv:
 
 
 # --------------------------------------------------------------------- models
-def onednn_linear_of(cfg, device) -> bool:
-    """Whether the run's networks multiply through oneDNN (:class:`torchrl_silp.modules.Linear`):
-    ``cfg.network.onednn_linear``, with ``auto`` resolved for the run.
-
-    ``auto`` is true on a CPU run that has one torch thread when its networks are built (the recipes
-    set ``cfg.threads`` first; a sweep's runs get one CPU each), in a torch build with oneDNN. There
-    oneDNN's AVX-512 products make a batch-256 update faster than torch's, which on AMD CPUs are MKL's
-    AVX2 ones. On two threads torch's products close most of that gap and oneDNN's fixed cost per call
-    takes the rest (``docs/results.md``, section 5). A run saved before the field existed, and
-    ``bc.py``'s actor config, have none: torch's layers.
-    """
-    value = cfg.network.get("onednn_linear", False)
-    if not (isinstance(value, bool) or value == "auto"):
-        raise ValueError(f"network.onednn_linear must be true, false or 'auto', got {value!r}")
-    if value == "auto":
-        return torch.device(device).type == "cpu" and torch.get_num_threads() == 1 and onednn_linear_available()
-    return value
-
-
 def _mlp(cfg, out_features: int, device) -> nn.Module:
-    mlp = MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=ReLU, device=device)
-    return with_onednn_linear(mlp) if onednn_linear_of(cfg, device) else mlp
+    return MLP(num_cells=list(cfg.network.hidden_sizes), out_features=out_features, activation_class=nn.ReLU, device=device)
 
 
 def make_actor_critic(cfg, model, env, device):

@@ -1,7 +1,8 @@
-"""Policy- and network-side modules: GP-guided exploration, the next-goal Q-network input, actor averaging,
-a ReLU for compiled CPU updates, a linear layer whose CPU products run through oneDNN."""
+"""Policy- and network-side modules: GP-guided exploration, the next-goal Q-network input, actor averaging.
 
-from torchrl_silp.modules.activations import ReLU
+The networks themselves are TorchRL's ``MLP`` of stock ``nn.Linear`` and ``nn.ReLU`` layers.
+"""
+
 from torchrl_silp.modules.averaging import make_averaged_actor
 from torchrl_silp.modules.gp_exploration import (
     GP_EXPLORATION_MODES,
@@ -13,19 +14,14 @@ from torchrl_silp.modules.gp_exploration import (
     gp_posterior,
     matern52_kernel,
 )
-from torchrl_silp.modules.linear import Linear, onednn_linear_available, with_onednn_linear
 from torchrl_silp.modules.networks import NextGoalOffsetQ
 
 __all__ = [
     "GPGuidedExploration",
     "GP_EXPLORATION_MODES",
     "GP_STATE_KEYS",
-    "Linear",
     "NextGoalOffsetQ",
-    "ReLU",
     "make_averaged_actor",
-    "onednn_linear_available",
-    "with_onednn_linear",
     "matern52_kernel",
     "gp_posterior",
     "gp_negative_log_marginal_likelihood",
