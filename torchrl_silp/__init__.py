@@ -5,7 +5,7 @@ from torchrl_silp.deploy import SingleTaskRollout
 from torchrl_silp.envs import ReachEnv, UR5eReachEnv, UR5eReachGymEnv  # importing registers the Gymnasium ids
 from torchrl_silp.eval import evaluate
 from torchrl_silp.geometry import CollisionReason, sphere_box_distance
-from torchrl_silp.models import PandaReach, TaskModel, UR5eReach
+from torchrl_silp.models import PandaReach, TaskModel, UR5eReach, check_task_model
 from torchrl_silp.panda import Panda
 from torchrl_silp.modules import GPGuidedExploration
 from torchrl_silp.objectives import SILPLoss
@@ -16,6 +16,7 @@ from torchrl_silp.transforms import CollisionHandling, GoalRelative, PerceptionN
 __all__ = [
     "SingleTaskRollout",
     "TaskModel",
+    "check_task_model",
     "UR5eReach",
     "PandaReach",
     "UR5e",

@@ -9,6 +9,7 @@ from torchrl_silp.models.base import (
     as_model,
 )
 from torchrl_silp.models.arm import ArmReach
+from torchrl_silp.models.check import TaskModelError, check_task_model
 from torchrl_silp.models.panda import PandaReach
 from torchrl_silp.models.ur5e import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach
 
@@ -35,6 +36,8 @@ __all__ = [
     "PandaReach",
     "TASK_MODELS",
     "make_model",
+    "check_task_model",
+    "TaskModelError",
     "CONFIG_KEY",
     "ACHIEVED_GOAL_KEY",
     "DESIRED_GOAL_KEY",
