@@ -1,39 +1,75 @@
-"""The documentation's examples run."""
+"""The documentation's examples run, in order, and do what the text says."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
+import pytest
 import torch
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
 
-def test_your_own_task_example_runs_silp_on_a_new_task(capsys):
+@pytest.fixture(scope="module")
+def blocks():
+    """docs/your_own_task.md's python blocks run in one scope, in order: after each, a snapshot of the
+    names it left, what it printed, and the demo buffer's size."""
     text = (DOCS / "your_own_task.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
-    assert len(blocks) == 1
+    code = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert len(code) == 3
     scope: dict = {}
-    exec(compile(blocks[0], "docs/your_own_task.md", "exec"), scope)
-    # the planner found demonstrations on the new task and the loss trained on them
-    assert len(scope["buffers"].demo_buffer) > 0
-    out = scope["out"]
+    printed: list[str] = []
+    snapshots = []
+    for i, block in enumerate(code):
+        scope["print"] = lambda *a, **k: printed.append(" ".join(map(str, a)))
+        exec(compile(block, f"docs/your_own_task.md[{i}]", "exec"), scope)
+        demo_buffer = getattr(scope.get("buffers"), "demo_buffer", None)
+        snapshots.append({**scope, "_printed": list(printed), "_demos": len(demo_buffer) if demo_buffer is not None else 0})
+        printed.clear()
+    return snapshots
+
+
+def test_the_point_robot_trains_on_planned_demonstrations(blocks):
+    scope = blocks[0]
+    model, out = scope["model"], scope["out"]
     assert float(out["num_demos"]) > 0 and float(out["bc_mse"]) > 0
     demos = scope["buffers"].demo_buffer.sample(256)
     # every stored demonstration step moves by its action and is one the model lets pass
-    model = scope["model"]
     assert bool((demos["action"].abs() <= 1).all())
     moved = demos["next", "joint_position"] - demos["joint_position"]
     assert torch.allclose(moved, demos["action"] * model.action_scale, atol=1e-6)
     keys = model.state_keys
     _, collision, _, _ = model.outcome(demos.select(*keys), demos["next"].select(*keys))
     assert not bool(collision.any())
-    printed = capsys.readouterr().out
-    assert "demonstration transitions" in printed
+    assert f"{scope['_demos']} demonstration transitions" in scope["_printed"][0]
     # the single-task rollout runs on the new model too: a path from the task's start, moved by its actions
     episode = scope["episode"]
     steps = int(episode["steps"])
-    assert f"one task: {steps} steps" in printed and episode["joint_position"].shape == (steps + 1, 2)
+    assert f"one task: {steps} steps" in scope["_printed"][1]
+    assert episode["joint_position"].shape == (steps + 1, 2)
     moved = episode["joint_position"][1:] - episode["joint_position"][:-1]
     assert torch.allclose(moved, episode["action"].clamp(-1, 1) * model.action_scale, atol=1e-6)
+
+
+def test_the_collector_loop_plans_whole_episodes_and_keeps_the_rest(blocks):
+    scope = blocks[1]
+    # 4 batches of 30 steps of 16 envs: 120 steps per env, two whole 50-step episodes each and 20 steps pending
+    assert scope["assembler"].num_pending == 16 * 20
+    assert scope["_printed"] == [f"{16 * 20} transitions wait for their episodes to finish"]
+    assert scope["_demos"] > blocks[0]["_demos"]
+
+
+def test_silp_loss_and_mixed_replay_without_a_task_model(blocks):
+    scope = blocks[2]
+    out, buffers = scope["out"], scope["buffers"]
+    # exactly N_D = 0.25 * 128 demonstrations in each batch, and the BC term computed on them
+    assert int(out["num_demos"]) == 32
+    batch = buffers.sample()
+    assert int(batch["is_demo"].sum()) == 32 and batch.batch_size == (128,)
+    demos = batch[batch["is_demo"].squeeze(-1)]
+    # the demonstrations are the swing-up controller's actions on their states
+    replayed = scope["swing_up"](demos.select("observation").clone())
+    torch.testing.assert_close(replayed["action"], demos["action"])
+    assert torch.isfinite(out["loss_bc"]) and float(out["loss_bc"].detach()) > 0
+    assert len(buffers.interaction_buffer) == 2 * 200
