@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 ray = pytest.importorskip("ray")
 
@@ -127,8 +128,8 @@ def test_sweep_report_and_restart(tmp_path, capsys):
         block = report.main(["--results", str(results), "--out", str(md), "--figure", str(png)])
         text = md.read_text()
         assert text.startswith("# Results\n\nearlier sections\n\n<!-- table1:begin -->") and text.endswith("<!-- table1:end -->\n\nlater\n")
-        assert "old table" not in text and block in text and "collector.total_frames" in block and "`160`" in block
-        for m, label in (("sac", "SAC"), ("sac_demon", "SAC-Demon")):
+        assert "old table" not in text and block in text and "`collector.total_frames` 160" in block
+        for m, label in (("sac", "the paper's SAC as written (`sac`)"), ("sac_demon", "the paper's SAC-Demon as written (`sac_demon`)")):
             cells = _cells(block, label)
             runs = [summaries[m, s] for s in SEEDS]
             assert cells[1] == "paper's"  # the baselines' method configs hold the paper's settings
@@ -136,8 +137,9 @@ def test_sweep_report_and_restart(tmp_path, capsys):
             assert _agrees(cells[4], np.mean([r["train_wall_s"] for r in runs])), cells
             assert _agrees(cells[6], np.mean([r["rollout_time_per_episode_s"] for r in runs])), cells
             assert cells[8] == "2"
-            assert cells[3] == f"{report.PAPER_TABLE1[m]['success'][0]:.3f} ({report.PAPER_TABLE1[m]['success'][1]:.3f})"
-        assert "- SAC: 2 seeds (0, 1)" in block and "- SAC-SILP+ (paper's): not run" in block
+            paper = yaml.safe_load((RECIPES / "reporting" / "paper.yaml").read_text())["table1"][m]["success"]
+            assert cells[3] == f"{paper[0]:.3f} ({paper[1]:.3f})"
+        assert "- `sac`: 2 of 3 seeds (seeds 0, 1)" in block and "- `sac_silp_plus`: not run" in block
         assert "not run: SAC-SILP+ ≥ SAC-Demon ≥ SAC" in block
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
