@@ -226,19 +226,26 @@ _drawing = False  # set by write(): --check and tests render the text without dr
 
 
 def render(name: str, page: Path, results: Path | None = None, figure: Path | None = None) -> str:
-    """Block ``name``'s text for ``page``, markers included; ``results`` reads another folder (a runs block),
-    ``figure`` draws its figure there."""
+    """Block ``name`` of pages.yaml for ``page``, markers included; ``results`` reads another folder (every row
+    of a runs block), ``figure`` draws the block's figure there."""
     blocks = spec()["blocks"]
     if name not in blocks:
         raise KeyError(f"no block {name!r} in pages.yaml: one of {', '.join(blocks)}")
     block = dict(blocks[name])
     if results is not None:
-        block["results"] = str(results)
-        block["rows"] = [{**(r if isinstance(r, dict) else {"method": r}), "results": str(results)}
-                         for r in block.get("rows", [])] if block.get("rows", "all") != "all" else "all"
-    begin, end = markers(name)
-    if results is not None:
         _runs_of.cache_clear()
+        block["results"] = str(results)
+        if block.get("rows", "all") != "all":
+            block["rows"] = [{**(r if isinstance(r, dict) else {"method": r}), "results": str(results)}
+                             for r in block["rows"]]
+    return render_block(name, block, page, figure)
+
+
+def render_block(name: str, block: dict, page: Path, figure: Path | None = None) -> str:
+    """A block's text from its spec (a ``blocks`` entry of pages.yaml), markers included."""
+    if block.get("kind") not in KINDS:
+        raise ValueError(f"block {name!r}: kind {block.get('kind')!r} is not one of {', '.join(KINDS)}")
+    begin, end = markers(name)
     body = KINDS[block["kind"]](name, block, page, figure)
     return "\n".join([begin, f"### {block['title']}", "", *body, end])
 
