@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from abc import abstractmethod
-
 import torch
 from tensordict import TensorDict
 
@@ -21,6 +19,8 @@ _LIPSCHITZ: dict = {}
 class ArmReach(TaskModel):
     """A robot arm reaching a goal among ``num_boxes`` boxes on a table (:class:`UR5eReach`, :class:`PandaReach`).
 
+    The robot is an :class:`~torchrl_silp.robots.ArmKinematics` (FK, joint limits, sphere cover,
+    table and self-collision spheres, URDF path); nothing else of it is read.
     The achieved goal is the robot's TCP (``robot.fk``); the scene is ``"obstacle"``, the boxes'
     AABBs ``(xmin, xmax, ymin, ymax, zmin, zmax)`` one after the other; a configuration collides
     with a box, the table, itself or by leaving the workspace (bits of
@@ -31,8 +31,7 @@ class ArmReach(TaskModel):
 
     A subclass sets the class constants (``WORKSPACE_LOW`` / ``HIGH``, ``OBSTACLE_SIZE``,
     ``OBSTACLE_CENTER_LOW`` / ``HIGH``, ``TASK_JOINT_LOW`` / ``HIGH``), ``robot_class``,
-    ``config_dim`` and ``action_scale``, and implements :meth:`collision_flags`, :meth:`clearance`
-    and :meth:`self_pairs`.
+    ``config_dim`` and ``action_scale``, and implements :meth:`collision_flags` and :meth:`clearance`.
     """
 
     goal_dim = 3
@@ -91,9 +90,9 @@ class ArmReach(TaskModel):
         """The TCP position ``(..., 3)`` (metres, base frame)."""
         return self.robot.fk(config)
 
-    @abstractmethod
     def self_pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Sphere index pairs ``(a, b)`` of the self-collision test."""
+        """Sphere index pairs ``(a, b)`` of the self-collision test: the robot's ``self_pair_a``, ``self_pair_b``."""
+        return self.robot.self_pair_a, self.robot.self_pair_b
 
     def task_filter(self, config: torch.Tensor, tcp: torch.Tensor) -> torch.Tensor:
         """Which free configurations may start or end a task: bool ``(N,)`` (all, by default)."""

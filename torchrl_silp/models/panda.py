@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 from tensordict import TensorDictBase
 
 from torchrl_silp.geometry import CollisionReason, in_box
 from torchrl_silp.models.arm import ArmReach
 from torchrl_silp.models.base import _check_finite, _check_tensor, check_boxes
-from torchrl_silp.panda import Panda
+from torchrl_silp.robots import Panda
 
 __all__ = ["PandaReach"]
 
@@ -35,7 +33,7 @@ class PandaReach(ArmReach):
     (start-goal > start-box > box-goal) and no box touches start or goal.
 
     Args:
-        robot: a :class:`~torchrl_silp.panda.Panda` to share; built from ``assets/panda.urdf`` by default.
+        robot: a :class:`~torchrl_silp.robots.Panda` to share; built from ``assets/panda.urdf`` by default.
         num_boxes: boxes on the table (>= 1).
         success_distance, motion_resolution, conservative, device, dtype: see :class:`TaskModel`.
 
@@ -90,11 +88,6 @@ class PandaReach(ArmReach):
         centres, tcp = self.robot.spheres_and_tcp(q)
         return batch, centres, tcp, boxes
 
-    def _pair_distance(self, centres):
-        robot = self.robot
-        lo, hi = robot._sc_lo, robot._sc_hi
-        return torch.cdist(centres[:, lo:].contiguous(), centres[:, :hi].contiguous()), robot._sc_reach
-
     def collision_flags(self, config, scene, margin=None):
         batch, centres, tcp, boxes = self._flat(config, scene)
         m = margin or {}
@@ -106,8 +99,7 @@ class PandaReach(ArmReach):
         hit_obstacle = (gap2 < (r + m.get("obstacle", 0.0)).square()).flatten(1).any(-1)
         t = self.robot.table_mask
         hit_table = (centres[:, t, 2] < r[t] + m.get("table", 0.0)).any(-1)
-        d, reach = self._pair_distance(centres)
-        hit_self = ((d < reach + m.get("self", 0.0)) & (reach > 0)).flatten(1).any(-1)
+        hit_self = self.robot.self_collision(centres, m.get("self", 0.0))
         w = m.get("workspace", 0.0)
         out_ws = ~in_box(tcp, self.workspace_low + w, self.workspace_high - w)
         flags = (
@@ -127,11 +119,6 @@ class PandaReach(ArmReach):
         obstacle_c = (gap - r).flatten(1).amin(-1)
         t = self.robot.table_mask
         table_c = (centres[:, t, 2] - r[t]).amin(-1)
-        d, reach = self._pair_distance(centres)
-        self_c = torch.where(reach > 0, d - reach, torch.full_like(d, math.inf)).flatten(1).amin(-1)
+        self_c = self.robot.self_clearance(centres)
         ws_c = torch.minimum(tcp - self.workspace_low, self.workspace_high - tcp).amin(-1)
         return torch.stack([obstacle_c, table_c, self_c, ws_c], -1).reshape(*batch, 4)
-
-    def self_pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The robot's pairs: spheres of links at least three joints apart (see :class:`~torchrl_silp.panda.Panda`)."""
-        return self.robot.self_pair_a, self.robot.self_pair_b

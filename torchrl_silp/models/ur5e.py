@@ -10,7 +10,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl_silp.geometry import CollisionReason, in_box
 from torchrl_silp.models.arm import ArmReach
 from torchrl_silp.models.base import _check_finite, _check_tensor, check_boxes
-from torchrl_silp.robot import UR5e
+from torchrl_silp.robots import UR5e
 
 __all__ = ["UR5eReach", "TASK_BRANCHES", "WORKSPACE_EXIT_MODES", "TABLE_CONTACT_MODES"]
 
@@ -33,7 +33,7 @@ class UR5eReach(ArmReach):
     workspace (bits of :class:`~torchrl_silp.geometry.CollisionReason`).
 
     Args:
-        robot: a :class:`~torchrl_silp.robot.UR5e` to share; built from the packaged URDF by default.
+        robot: a :class:`~torchrl_silp.robots.UR5e` to share; built from the packaged URDF by default.
         success_distance: reach accuracy in metres (paper: 0.05).
         motion_resolution, conservative: the swept check of a motion (see :class:`TaskModel`).
         workspace_exit: ``"collision"`` (a step taking the TCP out of the workspace is a
@@ -161,13 +161,13 @@ class UR5eReach(ArmReach):
             if size != n:  # padded with copies of the first row, dropped below
                 q = torch.cat([q, q[:1].expand(size - n, 3)])
                 box = torch.cat([box, box[:1].expand(size - n, 6)])
-            cos6, sin6 = self.robot.joint_trig(q)  # outside the compiled code: see sphere_coords_from_trig
+            cos, sin = self.robot.joint_trig(q)  # outside the compiled code: see ArmKinematics.joint_trig
             signature = (size, margins, q.device, q.dtype)  # what the compiled kernel specialises on
             if signature in self._compiled_signatures:
-                flags, tcp = self._kernel(cos6, sin6, box, *margins)
+                flags, tcp = self._kernel(cos, sin, box, *margins)
             else:
                 with torch._dynamo.config.patch(recompile_limit=64):  # one compilation per power of two
-                    flags, tcp = self._kernel(cos6, sin6, box, *margins)
+                    flags, tcp = self._kernel(cos, sin, box, *margins)
                 self._compiled_signatures.add(signature)
             flags, tcp = flags[:n], tcp[:n]
         else:
@@ -177,31 +177,33 @@ class UR5eReach(ArmReach):
     def _collision_kernel(self, q, box, m_obstacle: float = 0.0, m_table: float = 0.0, m_self: float = 0.0,
                           m_workspace: float = 0.0):
         # q (N, 3), box (N, 6) -> flags (N,) uint8, tcp (N, 3); margins inflate the spheres
-        (x, y, z), tcp, _ = self.robot.sphere_coords(q)
-        return self._flags_of_spheres(x, y, z, tcp, box, m_obstacle, m_table, m_self, m_workspace)
+        points = self.robot.cover_points(q)
+        return self._flags_of_points(points, box, m_obstacle, m_table, m_self, m_workspace)
 
-    def _collision_kernel_from_trig(self, cos6, sin6, box, m_obstacle: float = 0.0, m_table: float = 0.0,
+    def _collision_kernel_from_trig(self, cos, sin, box, m_obstacle: float = 0.0, m_table: float = 0.0,
                                     m_self: float = 0.0, m_workspace: float = 0.0):
-        # the compiled kernel: the joints' cosines and sines (N, 6) in, as _collision_kernel otherwise
-        (x, y, z), tcp, _ = self.robot.sphere_coords_from_trig(cos6, sin6)
-        return self._flags_of_spheres(x, y, z, tcp, box, m_obstacle, m_table, m_self, m_workspace)
+        # the compiled kernel: the moving joints' cosines and sines (K, N) in, as _collision_kernel otherwise
+        points = self.robot.cover_points_from_trig(cos, sin)
+        return self._flags_of_points(points, box, m_obstacle, m_table, m_self, m_workspace)
 
-    def _flags_of_spheres(self, x, y, z, tcp, box, m_obstacle, m_table, m_self, m_workspace):
+    def _flags_of_points(self, points, box, m_obstacle, m_table, m_self, m_workspace):
+        # points (3, N, S + 1) from robot.cover_points: each test reduces over a sample's spheres
         robot = self.robot
+        s = robot.n_spheres
         r = robot.sphere_radii
-        r2 = (r + m_obstacle).square()
         gap2 = None
-        for axis, c in enumerate((x, y, z)):
-            lo, hi = box[:, 2 * axis, None], box[:, 2 * axis + 1, None]
-            g = torch.maximum(lo - c, c - hi).clamp(min=0).square()
+        for axis in range(3):
+            x = points[axis, :, :s]
+            g = torch.maximum(box[:, 2 * axis, None] - x, x - box[:, 2 * axis + 1, None]).clamp(min=0).square()
             gap2 = g if gap2 is None else gap2 + g
-        hit_obstacle = (gap2 < r2).any(-1)
-        t = robot.table_slice
-        hit_table = (z[:, t] < r[t] + m_table).any(-1)
-        g, o = robot.gripper_slice, robot.self_collision_slice
-        reach2 = (r[g].unsqueeze(-1) + r[o] + m_self).square()
-        d2 = sum((c[:, g].unsqueeze(-1) - c[:, o].unsqueeze(-2)).square() for c in (x, y, z))
+        hit_obstacle = (gap2 < (r + m_obstacle).square()).any(-1)
+        t = robot.table_index
+        hit_table = (points[2, :, t] < r[t] + m_table).any(-1)
+        rows, cols, reach = robot.self_rows, robot.self_cols, robot.self_reach
+        reach2 = torch.where(reach > 0, (reach + m_self).square(), -1.0)  # (R, C)
+        d2 = sum((points[axis, :, rows].unsqueeze(-1) - points[axis, :, cols].unsqueeze(-2)).square() for axis in range(3))
         hit_self = (d2 < reach2).flatten(-2).any(-1)
+        tcp = points[:, :, s].T.contiguous()
         out_ws = ~in_box(tcp, self.workspace_low + m_workspace, self.workspace_high - m_workspace)
         flags = (
             hit_obstacle.to(torch.uint8) * CollisionReason.OBSTACLE
@@ -225,16 +227,9 @@ class UR5eReach(ArmReach):
         obstacle_c = (gap.norm(dim=-1) - r).amin(-1)
         t = robot.table_mask
         table_c = (centres[:, t, 2] - r[t]).amin(-1)
-        g, o = robot.gripper_spheres, robot.self_collision_spheres
-        dist = (centres[:, g].unsqueeze(2) - centres[:, o].unsqueeze(1)).norm(dim=-1)
-        self_c = (dist - (r[g].unsqueeze(-1) + r[o])).amin(-1).amin(-1)
+        self_c = robot.self_clearance(centres)
         ws_c = torch.minimum(tcp - self.workspace_low, self.workspace_high - tcp).amin(-1)
         return torch.stack([obstacle_c, table_c, self_c, ws_c], -1).reshape(*batch, 4)
-
-    def self_pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every gripper sphere against every base, shoulder and upper-arm sphere."""
-        g, o = self.robot.gripper_spheres, self.robot.self_collision_spheres
-        return g.repeat_interleave(o.numel()), o.repeat(g.numel())
 
     # --------------------------------------------------------------- sampling
     @staticmethod

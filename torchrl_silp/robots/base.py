@@ -1,0 +1,512 @@
+"""The arm-kinematics interface and the one batched forward-kinematics engine every arm runs on.
+
+:class:`ArmKinematics` reads a URDF once (:mod:`torchrl_silp.robots.urdf`) and
+turns the serial chain from its root to the ``tcp`` frame into flat tables, as
+pytorch-kinematics' ``Chain.__init__`` does, so no Python tree walk runs per
+call:
+
+- the effective origin ``E_k`` of every *moving* joint (``(K, 4, 4)``): the
+  fixed frames since the previous moving joint and the joint's own origin,
+  with the joint axis turned onto local ``z``;
+- a linear map from the configuration ``q`` ``(D,)`` to the moving joints'
+  angles, ``theta = A q + b``: a coupled joint (the UR5e's wrist_1) is a row
+  of ``A``; a joint whose row is zero is locked at ``b`` and folded into the
+  static origins at construction;
+- point and frame maps: every collision-sphere centre, the TCP and every
+  frame is a constant linear function of the moving bodies' poses.
+
+The hot path (:func:`chain_bodies`, :func:`apply_map`) holds each body pose
+column-major, as the four columns of ``[R | p]``, each a ``(3, N)`` block
+with the batch innermost. ``T_{k-1} @ E_k`` is then one ``(4, 4) @ (4, 3N)``
+matrix product over the whole batch, ``@ Rz(theta_k)`` mixes two columns in
+closed form, and the sphere centres are one more product with the point map.
+The centres come out coordinate-major, ``(3, N, S + 1)``: one ``(N, S + 1)``
+block per coordinate, the spheres innermost, so that the collision kernels of
+:mod:`torchrl_silp.models` reduce over a sample's spheres (and sphere pairs)
+in contiguous memory.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from torchrl_silp.robots.urdf import CollisionPrimitive, parse_collisions, parse_joints, read_urdf, serial_chain
+
+__all__ = ["ArmKinematics", "chain_bodies", "apply_map"]
+
+
+# --------------------------------------------------------------- the engine
+def chain_bodies(origins_t: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """Poses of the root and the moving bodies of a serial chain of z-axis revolute joints, column-major.
+
+    Body 0 is the root, the identity; body ``k + 1`` is ``T_{k+1} = T_k @ E_k @ Rz(theta_k)``.
+
+    Args:
+        origins_t: the transposed effective origins ``E_k^T``, ``(K, 4, 4)``.
+        cos, sin: cosines and sines of the joint angles, ``(K, N)``.
+
+    Returns:
+        ``(K + 1, 4, 3, N)``: for body ``k`` and column ``c`` of its ``[R | p]``, the column's
+        three rows over the batch.
+
+    Examples:
+        >>> import math, torch
+        >>> E = torch.eye(4).expand(2, 4, 4)  # two joints on one axis
+        >>> theta = torch.tensor([[0.3], [0.4]])
+        >>> X = chain_bodies(E.transpose(1, 2), theta.cos(), theta.sin())
+        >>> round(float(X[2, 0, 0, 0]), 6) == round(math.cos(0.7), 6)  # R[0, 0] after the second joint
+        True
+    """
+    n = cos.shape[-1]
+    # the root is a body of the stack, so that points riding on it are rows of the one
+    # product in apply_map too (a bias added after it would be fused into, and recomputed
+    # by, every loop of a compiled caller that reads the points)
+    out = [torch.eye(4, 3, dtype=cos.dtype, device=cos.device).unsqueeze(-1).expand(4, 3, n)]
+    # T_root @ E_0 is E_0 for every sample: the first moving body needs no product
+    M = origins_t[0, :, :3].unsqueeze(-1).expand(4, 3, n)
+    for k in range(origins_t.shape[0]):
+        if k:
+            M = (origins_t[k] @ out[-1].reshape(4, 3 * n)).view(4, 3, n)
+        c, s = cos[k], sin[k]
+        # @ Rz(theta): column 0 becomes c col0 + s col1, column 1 becomes c col1 - s col0
+        out.append(torch.stack([M[0] * c + M[1] * s, M[1] * c - M[0] * s, M[2], M[3]]))
+    return torch.stack(out)
+
+
+def apply_map(bodies: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Points (or frame columns) that are constant linear functions of the body poses.
+
+    Args:
+        bodies: ``(B, 4, 3, N)`` from :func:`chain_bodies`.
+        weights: ``(R, 4B)``: row ``r`` weighs column ``c`` of body ``b`` by ``weights[r, 4b + c]``.
+
+    Returns:
+        ``(3, N, R)``: coordinate-major, the points (rows of ``weights``) innermost.
+    """
+    k, _, _, n = bodies.shape
+    # one (3N, 4K) @ (4K, R) product; both operands are transposed views, which BLAS reads as they are
+    return (bodies.reshape(4 * k, 3 * n).T @ weights.T).view(3, n, weights.shape[0])
+
+
+def _axis_alignment(axis: np.ndarray) -> np.ndarray:
+    # a rotation A with A e_z = axis, so Rot(axis, q) = A Rz(q) A^T
+    z = np.array([0.0, 0.0, 1.0])
+    A = np.eye(4)
+    c = float(np.dot(z, axis))
+    if c > 1 - 1e-12:
+        return A
+    if c < -1 + 1e-12:
+        A[:3, :3] = np.diag([1.0, -1.0, -1.0])
+        return A
+    v = np.cross(z, axis)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    A[:3, :3] = np.eye(3) + K + K @ K / (1 + c)
+    return A
+
+
+def _rz(theta: float) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    return T
+
+
+def _index_of(indices: Sequence[int]) -> slice | list[int]:
+    """A ``slice`` equal to a run of consecutive indices (a view, not a gather), else the list itself."""
+    indices = list(indices)
+    if indices and indices == list(range(indices[0], indices[-1] + 1)):
+        return slice(indices[0], indices[-1] + 1)
+    return indices
+
+
+# ---------------------------------------------------------------- the arm
+class ArmKinematics(nn.Module):
+    """A robot arm from a URDF: TCP and frame kinematics and a collision-sphere cover, batched.
+
+    Every method takes configurations with any leading batch dims ``(..., D)``
+    (``D = config_dim``, the joints of :attr:`joint_names`) on the module's
+    device and is differentiable. Constants are buffers, so ``.to(device)`` and
+    ``.to(dtype)`` move them.
+
+    What tasks and pictures read:
+
+    - kinematics: :meth:`fk` (TCP position), :meth:`tcp_pose`, :meth:`frames`
+      (every frame of :attr:`frame_names`, root first, ``tcp`` last),
+      :meth:`full_joints` (the angles of all chain joints, :attr:`chain_joint_names`);
+    - joints: :attr:`joint_names`, :attr:`joint_low`, :attr:`joint_high` (URDF limits);
+    - the sphere cover of the URDF's ``<collision>`` primitives (:attr:`primitives`):
+      sphere ``i`` rides on frame ``frame_names[sphere_frame[i]]`` at ``sphere_local[i]``
+      with radius ``sphere_radii[i]``, covering primitive ``sphere_primitive[i]`` of link
+      ``sphere_link_names[i]``; :meth:`spheres_and_tcp`, :meth:`link_spheres`;
+    - the table test: :attr:`table_mask` (spheres checked against ``z = 0``: all but
+      those of :attr:`TABLE_LINKS`), :attr:`table_index` (the same as a slice or list);
+    - the self test: sphere pairs :attr:`self_pair_a` < :attr:`self_pair_b`; they lie in
+      one block of the sphere-distance matrix, rows :attr:`self_rows` by columns
+      :attr:`self_cols`, whose :attr:`self_reach` holds the radius sum of a checked pair and
+      ``-1`` elsewhere; :meth:`self_collision`, :meth:`self_clearance`;
+    - the hot-path form: :meth:`joint_trig` then :meth:`cover_points_from_trig` (or
+      :meth:`cover_points`) give every sphere centre and the TCP coordinate-major;
+    - :attr:`urdf_path`, and :meth:`reference_fk` through pytorch-kinematics (for checks).
+
+    Subclasses name the chain (``root``, the configuration joints and the coupled ones)
+    and set :attr:`TABLE_LINKS`, :attr:`END_EFFECTOR_LINKS`, and the self pairs
+    (:meth:`_set_self_pairs`).
+
+    Args:
+        urdf_path: the URDF file.
+        root: the chain's root link (the world frame).
+        config_joints: the chain joints the configuration holds, in its order.
+        coupled: every other revolute chain joint as ``name: (coefficients, offset)``, its
+            angle ``coefficients . q + offset``; all-zero coefficients lock it at ``offset``.
+        device, dtype: of the constant tensors (float32 default; float64 for tests).
+    """
+
+    #: the frame whose position :meth:`fk` returns
+    TCP_FRAME = "tcp"
+    #: links standing on the table: their spheres are not checked against the plane z = 0
+    TABLE_LINKS: tuple[str, ...] = ()
+    #: links drawn as the end effector in pictures
+    END_EFFECTOR_LINKS: tuple[str, ...] = ()
+    #: a collision-free configuration: self pairs whose spheres overlap there are dropped (None: no check)
+    HOME: tuple[float, ...] | None = None
+    #: the configuration's name in error messages
+    CONFIG_NAME = "q"
+
+    def __init__(
+        self,
+        urdf_path: str | os.PathLike,
+        *,
+        root: str,
+        config_joints: Sequence[str],
+        coupled: Mapping[str, tuple[Sequence[float], float]] | None = None,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ):
+        super().__init__()
+        if dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        path = os.fspath(urdf_path)
+        text = read_urdf(path)
+        try:
+            chain = serial_chain(parse_joints(text), root, self.TCP_FRAME)
+            prims = parse_collisions(text)
+        except ValueError as err:
+            raise ValueError(f"urdf_path: {path!r}: {err}") from err
+        self.urdf_path = path
+        self._reference_chain = None  # pytorch-kinematics' chain, built on first use by reference_fk
+        rotating = [j for j in chain if j.type != "fixed"]
+        self.chain_joint_names = tuple(j.name for j in rotating)
+        config_joints, coupled = tuple(config_joints), dict(coupled or {})
+        expected = set(config_joints) | set(coupled)
+        if expected != set(self.chain_joint_names) or len(expected) != len(config_joints) + len(coupled):
+            raise ValueError(
+                f"urdf_path: {path!r}: the revolute joints from {root!r} to {self.TCP_FRAME!r} are "
+                f"{list(self.chain_joint_names)}; expected {list(config_joints)} and the coupled {list(coupled)}"
+            )
+        self.joint_names = config_joints
+        d = len(config_joints)
+        jmap, joff = np.zeros((len(rotating), d)), np.zeros(len(rotating))
+        for i, j in enumerate(rotating):
+            if j.name in config_joints:
+                jmap[i, config_joints.index(j.name)] = 1.0
+            else:
+                coeffs, offset = coupled[j.name]
+                if len(coeffs) != d:
+                    raise ValueError(f"coupled: joint {j.name!r} needs {d} coefficients, got {len(coeffs)}")
+                jmap[i], joff[i] = coeffs, offset
+        limits = {j.name: j.limits for j in rotating}
+        missing = [n for n in config_joints if limits[n] is None]
+        if missing:
+            raise ValueError(f"urdf_path: {path!r}: joints {missing} have no <limit lower upper>")
+
+        # Walk the chain once. A body is the root or the child of a moving joint; every
+        # frame is a constant offset from its body, and a moving joint's effective origin
+        # absorbs the fixed frames (and locked joints) since the previous body.
+        frame_names, frame_body, frame_offset, frame_depth = [root], [0], [np.eye(4)], [0]
+        origins, moving_rows = [], []
+        pending, depth = np.eye(4), 0
+        for j in chain:
+            if j.type == "fixed":
+                pending = pending @ j.origin
+            else:
+                i = self.chain_joint_names.index(j.name)
+                align = _axis_alignment(j.axis)
+                depth += 1
+                if jmap[i].any():
+                    origins.append(pending @ j.origin @ align)
+                    moving_rows.append(i)
+                    pending = align.T.copy()
+                else:
+                    pending = pending @ j.origin @ align @ _rz(joff[i]) @ align.T
+            frame_names.append(j.child)
+            frame_body.append(len(origins))
+            frame_offset.append(pending.copy())
+            frame_depth.append(depth)
+        if not origins:
+            raise ValueError(f"urdf_path: {path!r}: no joint between {root!r} and {self.TCP_FRAME!r} moves")
+        self.frame_names = frame_names
+        self.frame_depth = frame_depth  # revolute joints between the root and each frame
+        n_moving = len(origins)
+
+        f64 = dict(dtype=torch.float64)
+        tables: dict[str, torch.Tensor] = {
+            "joint_low": torch.tensor([limits[n][0] for n in config_joints], **f64),
+            "joint_high": torch.tensor([limits[n][1] for n in config_joints], **f64),
+            "_moving_map": torch.tensor(jmap[moving_rows], **f64),  # (K, D)
+            "_moving_offset": torch.tensor(joff[moving_rows], **f64),  # (K,)
+            "_joint_map": torch.tensor(jmap, **f64),  # (J, D)
+            "_joint_offset": torch.tensor(joff, **f64),  # (J,)
+            "_origins_t": torch.tensor(np.stack(origins).transpose(0, 2, 1).copy(), **f64),  # (K, 4, 4)
+        }
+
+        # frame f = body(f) @ offset(f): column c of the frame weighs column l of the body by offset[l, c]
+        n_frames, n_bodies = len(frame_names), n_moving + 1
+        W = np.zeros((n_frames, 4, n_bodies, 4))
+        for f, (b, off) in enumerate(zip(frame_body, frame_offset)):
+            W[f, :, b, :] = off.T
+        tables["_frame_map"] = torch.tensor(W.reshape(4 * n_frames, 4 * n_bodies), **f64)
+
+        # The sphere cover, in chain order (a link's spheres together, the base's first).
+        unknown = sorted({p.link for p in prims} - set(frame_names))
+        if unknown:
+            raise ValueError(f"urdf_path: {path!r}: collision geometry on links {unknown}, not on the arm's chain")
+        if not prims:
+            raise ValueError(f"urdf_path: {path!r} has no <collision> geometry")
+        prims = sorted(prims, key=lambda p: frame_names.index(p.link))
+        self.primitives: list[CollisionPrimitive] = prims
+        local, radii, sframe, sprim = [], [], [], []
+        for k, prim in enumerate(prims):
+            c, r = prim.sphere_cover()
+            local.append(c)
+            radii.append(r)
+            sframe += [frame_names.index(prim.link)] * len(r)
+            sprim += [k] * len(r)
+        local, radii = np.concatenate(local), np.concatenate(radii)
+        self.sphere_link_names = [frame_names[f] for f in sframe]
+        # the points: every sphere centre, then the TCP, in the frame of their body
+        tcp = frame_names.index(self.TCP_FRAME)
+        points = [(sframe[i], np.append(local[i], 1.0)) for i in range(len(radii))] + [(tcp, np.eye(4)[:, 3])]
+        P = np.zeros((len(points), n_bodies, 4))
+        for i, (f, h) in enumerate(points):
+            P[i, frame_body[f]] = frame_offset[f] @ h
+        tables["_point_map"] = torch.tensor(P.reshape(len(points), 4 * n_bodies), **f64)
+        tables["sphere_radii"] = torch.tensor(radii, **f64)
+        tables["sphere_local"] = torch.tensor(local, **f64)
+        for name, value in tables.items():
+            self.register_buffer(name, value.to(device=device, dtype=dtype), persistent=not name.startswith("_"))
+        self.register_buffer("sphere_frame", torch.tensor(sframe, dtype=torch.long, device=device))
+        self.register_buffer("sphere_primitive", torch.tensor(sprim, dtype=torch.long, device=device))
+        table = [n not in self.TABLE_LINKS for n in self.sphere_link_names]
+        self.register_buffer("table_mask", torch.tensor(table, device=device))
+        self.table_index = _index_of(np.flatnonzero(table).tolist())
+        self._tables64 = tables  # float64 copies for construction-time checks (self pairs at HOME)
+        self._set_self_pairs([])
+
+    # ------------------------------------------------------------ self pairs
+    def _set_self_pairs(self, link_pairs: Iterable[tuple[str, str]]) -> None:
+        """Check every sphere of link ``x`` against every sphere of link ``y``, for ``(x, y)`` in ``link_pairs``.
+
+        Pairs whose spheres already overlap at :attr:`HOME` are dropped (listed in
+        :attr:`home_overlap_pairs`): there they are artefacts of the conservative cover.
+        """
+        wanted = {frozenset(p) for p in link_pairs}
+        unknown = sorted({n for p in wanted for n in p} - set(self.frame_names))
+        if unknown:
+            raise ValueError(f"self_collision_links: unknown links {unknown}; allowed: {self.frame_names}")
+        names = self.sphere_link_names
+        a, b = np.triu_indices(len(names), k=1)
+        keep = np.array([names[i] != names[j] and frozenset((names[i], names[j])) in wanted for i, j in zip(a, b)],
+                        dtype=bool)
+        a, b = a[keep], b[keep]
+        radii = self._tables64["sphere_radii"].numpy()
+        self.home_overlap_pairs: list[tuple[str, str]] = []
+        if self.HOME is not None and len(a):
+            t = self._tables64
+            q = torch.tensor(self.HOME, dtype=torch.float64).unsqueeze(-1)  # (D, 1)
+            theta = t["_moving_map"] @ q + t["_moving_offset"].unsqueeze(-1)
+            pts = apply_map(chain_bodies(t["_origins_t"], theta.cos(), theta.sin()), t["_point_map"])
+            home = pts[:, 0, :-1].T.numpy()
+            apart = np.linalg.norm(home[a] - home[b], axis=-1) >= radii[a] + radii[b]
+            self.home_overlap_pairs = [(names[i], names[j]) for i, j in zip(a[~apart], b[~apart])]
+            a, b = a[apart], b[apart]
+        device, dtype = self.sphere_radii.device, self.sphere_radii.dtype
+        self.register_buffer("self_pair_a", torch.tensor(a, dtype=torch.long, device=device))
+        self.register_buffer("self_pair_b", torch.tensor(b, dtype=torch.long, device=device))
+        # rows b (the distal spheres) by columns a (the proximal ones): contiguous slices of
+        # the chain-ordered spheres, so the hot path takes a view of that block
+        lo, hi = (int(b.min()), int(a.max()) + 1) if len(a) else (len(radii), 0)
+        self.self_rows, self.self_cols = slice(lo, len(radii)), slice(0, hi)
+        reach = np.full((len(radii) - lo, hi), -1.0)
+        reach[b - lo, a] = radii[a] + radii[b]
+        self.register_buffer("self_reach", torch.tensor(reach, dtype=dtype, device=device), persistent=False)
+
+    # ------------------------------------------------------------ basics
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.joint_low.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.joint_low.device
+
+    @property
+    def config_dim(self) -> int:
+        """Joints of the configuration (``len(joint_names)``)."""
+        return len(self.joint_names)
+
+    @property
+    def n_spheres(self) -> int:
+        return self.sphere_radii.shape[0]
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.pop("_tables64", None)  # construction only
+        return state
+
+    def _check_q(self, q, name: str | None = None) -> None:
+        name = name or self.CONFIG_NAME
+        d = self.config_dim
+        if not isinstance(q, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor of shape (..., {d}), got {type(q).__name__}")
+        if not q.is_floating_point():
+            raise TypeError(f"{name} must be a floating tensor, got {q.dtype}")
+        if q.shape[-1:] != (d,):
+            raise ValueError(f"{name} must have shape (..., {d}) (the joints {list(self.joint_names)}), "
+                             f"got {tuple(q.shape)}")
+
+    def _flat(self, q: torch.Tensor) -> torch.Tensor:
+        self._check_q(q)
+        return q.reshape(-1, self.config_dim).to(self.dtype)
+
+    # ------------------------------------------------------------ joints
+    def full_joints(self, q: torch.Tensor) -> torch.Tensor:
+        """The angles ``(..., J)`` of every revolute chain joint (:attr:`chain_joint_names`) at ``q``."""
+        flat = self._flat(q)
+        full = torch.addmm(self._joint_offset, flat, self._joint_map.T)
+        return full.reshape(*q.shape[:-1], len(self.chain_joint_names))
+
+    def joint_trig(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Cosines and sines ``(K, N)`` of the moving joints' angles at ``q``, flattened over the batch.
+
+        The first half of :meth:`cover_points`; a ``torch.compile``'d caller computes them
+        outside its graph, where ATen's vectorised kernels evaluate them once (traced, inductor's
+        CPU code evaluates them element by element and again in every loop that reads them).
+        """
+        theta = torch.addmm(self._moving_offset.unsqueeze(-1), self._moving_map, self._flat(q).T)
+        return theta.cos(), theta.sin()
+
+    def _bodies(self, q: torch.Tensor) -> torch.Tensor:
+        return chain_bodies(self._origins_t, *self.joint_trig(q))
+
+    # ------------------------------------------------------------ kinematics
+    def cover_points_from_trig(self, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+        """:meth:`cover_points` from the moving joints' cosines and sines ``(K, N)`` (:meth:`joint_trig`)."""
+        k = self._origins_t.shape[0]
+        if cos.dim() != 2 or cos.shape[0] != k or sin.shape != cos.shape:
+            raise ValueError(f"cos and sin must both have shape ({k}, N), got {tuple(cos.shape)} and {tuple(sin.shape)}")
+        return apply_map(chain_bodies(self._origins_t, cos, sin), self._point_map)
+
+    def cover_points(self, q: torch.Tensor) -> torch.Tensor:
+        """Every sphere centre and then the TCP, coordinate-major: ``(3, N, S + 1)``, ``N`` the flattened batch.
+
+        ``points[:, n, i]`` is sphere ``i``'s centre in sample ``n`` for ``i < S``, and the TCP for
+        ``i = S``; one coordinate of every sphere, ``points[0, :, :S]``, is an ``(N, S)`` block.
+        """
+        return apply_map(self._bodies(q), self._point_map)
+
+    def spheres_and_tcp(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Sphere centres ``(..., S, 3)`` and TCP position ``(..., 3)`` from one FK pass.
+
+        Both are views of :meth:`cover_points` (coordinate-major in memory): call
+        ``.contiguous()`` before ``.view()``.
+        """
+        pts = self.cover_points(q).permute(1, 2, 0)  # (N, S + 1, 3)
+        batch = q.shape[:-1]
+        return pts[:, :-1].reshape(*batch, self.n_spheres, 3), pts[:, -1].reshape(*batch, 3)
+
+    def link_spheres(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Centres ``(..., S, 3)`` and radii ``(S,)`` of the collision-sphere cover."""
+        centres, _ = self.spheres_and_tcp(q)
+        return centres, self.sphere_radii
+
+    def fk(self, q: torch.Tensor) -> torch.Tensor:
+        """TCP position ``(..., 3)`` in the root frame (metres)."""
+        tcp = apply_map(self._bodies(q), self._point_map[-1:])  # (3, N, 1)
+        return tcp[..., 0].T.reshape(*q.shape[:-1], 3)
+
+    def _frames(self, q: torch.Tensor, rows: slice) -> tuple[torch.Tensor, torch.Tensor]:
+        cols = apply_map(self._bodies(q), self._frame_map[rows])  # (3, N, 4F)
+        f = cols.shape[-1] // 4
+        T = cols.view(3, cols.shape[1], f, 4).permute(1, 2, 0, 3)  # (N, F, row, column)
+        T = T.reshape(*q.shape[:-1], f, 3, 4)
+        return T[..., :3], T[..., 3]
+
+    def frames(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World poses of every frame (:attr:`frame_names`) at ``q``.
+
+        Returns:
+            rotations ``(..., F, 3, 3)`` and positions ``(..., F, 3)``.
+        """
+        return self._frames(q, slice(None))
+
+    def tcp_pose(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotation ``(..., 3, 3)`` and position ``(..., 3)`` of the tcp frame."""
+        f = self.frame_names.index(self.TCP_FRAME)
+        rot, pos = self._frames(q, slice(4 * f, 4 * f + 4))
+        return rot[..., 0, :, :], pos[..., 0, :]
+
+    # ------------------------------------------------------------ self test
+    def _self_block(self, centres: torch.Tensor) -> tuple[tuple, torch.Tensor]:
+        if not isinstance(centres, torch.Tensor):
+            raise TypeError(f"centres must be a torch.Tensor, got {type(centres).__name__}")
+        if centres.shape[-2:] != (self.n_spheres, 3):
+            raise ValueError(f"centres must have shape (..., {self.n_spheres}, 3), got {tuple(centres.shape)}")
+        batch = centres.shape[:-2]
+        c = centres.reshape(math.prod(batch), self.n_spheres, 3).to(self.dtype)
+        if self.self_pair_a.numel() == 0:
+            return batch, c.new_zeros(c.shape[0], 0)
+        # (N, rows, columns) distances of the block; cdist's matrix product keeps the
+        # (N, rows, columns, 3) differences out of memory
+        return batch, torch.cdist(c[:, self.self_rows].contiguous(), c[:, self.self_cols].contiguous())
+
+    def self_collision(self, centres: torch.Tensor, margin: float = 0.0) -> torch.Tensor:
+        """Whether a checked sphere pair overlaps (their spheres inflated by ``margin`` together), bool ``(...)``.
+
+        Args:
+            centres: sphere centres ``(..., S, 3)`` (:meth:`spheres_and_tcp`).
+            margin: added to every pair's radius sum (m). Spheres that only touch do not collide.
+        """
+        batch, d = self._self_block(centres)
+        if d.shape[-1] == 0:
+            return torch.zeros(batch, dtype=torch.bool, device=centres.device)
+        return ((d < self.self_reach + margin) & (self.self_reach > 0)).flatten(1).any(-1).reshape(batch)
+
+    def self_clearance(self, centres: torch.Tensor) -> torch.Tensor:
+        """The least gap (m) between two checked spheres, ``(...)``; negative where they overlap, inf with no pairs."""
+        batch, d = self._self_block(centres)
+        if d.shape[-1] == 0:
+            return torch.full(batch, math.inf, dtype=self.dtype, device=centres.device)
+        gap = torch.where(self.self_reach > 0, d - self.self_reach, torch.full_like(d, math.inf))
+        return gap.flatten(1).amin(-1).reshape(batch)
+
+    # ------------------------------------------------------------ reference
+    def reference_fk(self, q: torch.Tensor) -> torch.Tensor:
+        """TCP position through pytorch-kinematics' generic chain (slow; for checks)."""
+        import pytorch_kinematics as pk
+
+        self._check_q(q)
+        if self._reference_chain is None:
+            with open(self.urdf_path) as fh:
+                self._reference_chain = pk.build_serial_chain_from_urdf(fh.read(), self.TCP_FRAME)
+        full = self.full_joints(q.to(self.dtype)).to(q.dtype)
+        chain = self._reference_chain.to(dtype=q.dtype, device=q.device)
+        names = chain.get_joint_parameter_names()
+        order = [self.chain_joint_names.index(n) for n in names]
+        m = chain.forward_kinematics(full.reshape(-1, full.shape[-1])[:, order]).get_matrix()
+        return m[:, :3, 3].reshape(*q.shape[:-1], 3)
