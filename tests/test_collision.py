@@ -298,18 +298,19 @@ def test_compiled_kernel_equals_the_eager_one_at_padded_sizes(model):
     assert empty[0].shape == (0, 1)
 
 
-def test_sphere_coords_from_trig_equal_sphere_coords_and_check_their_shapes(model):
+def test_cover_points_from_trig_equal_per_sample_spheres_and_check_their_shapes(model):
     q = model.config_low + torch.rand(50, 3, generator=torch.Generator().manual_seed(5)) * (
         model.config_high - model.config_low)
-    cos6, sin6 = model.robot.joint_trig(q)
-    (x, y, z), tcp, bound = model.robot.sphere_coords_from_trig(cos6, sin6)
-    for i in (0, 17, 49):  # one configuration: the whole-matrix path, not the generated kernel
-        (rx, ry, rz), rtcp, rbound = model.robot.sphere_coords(q[i:i + 1])
-        for a, b in ((x, rx), (y, ry), (z, rz), (tcp, rtcp), (bound, rbound)):
-            torch.testing.assert_close(a[i:i + 1], b, atol=1e-5, rtol=0)
-    torch.testing.assert_close(tcp, model.robot.reference_fk(q), atol=1e-5, rtol=0)
-    with pytest.raises(ValueError, match="cos6 and sin6"):
-        model.robot.sphere_coords_from_trig(cos6, sin6[:, :3])
+    cos, sin = model.robot.joint_trig(q)
+    points = model.robot.cover_points_from_trig(cos, sin)  # (3, N, S + 1)
+    s = model.robot.n_spheres
+    for i in (0, 17, 49):  # one configuration at a time
+        centres, tcp = model.robot.spheres_and_tcp(q[i])
+        torch.testing.assert_close(points[:, i, :s].T, centres, atol=1e-12, rtol=0)
+        torch.testing.assert_close(points[:, i, s], tcp, atol=1e-12, rtol=0)
+    torch.testing.assert_close(points[:, :, s].T, model.robot.reference_fk(q), atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="cos and sin"):
+        model.robot.cover_points_from_trig(cos, sin[:3])
 
 
 def test_compiled_kernel_follows_margins_and_layouts_at_one_size(model):

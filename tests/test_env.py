@@ -410,27 +410,6 @@ def test_stateless_step_reads_the_tensordict():
     assert isinstance(out_a, TensorDict)
 
 
-def test_the_old_flat_observation_api_is_a_deprecated_alias_of_the_model():
-    env = UR5eReachEnv(num_envs=8, seed=2)
-    td = env.rollout(3, break_when_any_done=False)[:, 1]
-    model, obs, action = env.model, td["observation"], td["action"]
-    state = td.select(*model.state_keys)
-    with pytest.deprecated_call():
-        nxt = env.transition(obs, action)
-    assert torch.equal(nxt, model.observation(model.transition(state, action)))
-    with pytest.deprecated_call():
-        reward = env.reward(obs, nxt)
-    assert torch.equal(reward, model.reward(state, model.transition(state, action)))
-    with pytest.deprecated_call():
-        hit = env.collides(td["joint_position"], td["obstacle"])
-    assert torch.equal(hit, model.collides(td["joint_position"], td["obstacle"]))
-    q_to = td["joint_position"] + 0.1
-    with pytest.deprecated_call():
-        free = env.edge_collision_free(td["joint_position"], q_to, td["obstacle"])
-    flags, _ = model.motion_collision_flags(td["joint_position"], q_to, td.select("obstacle"))
-    assert torch.equal(free, flags.squeeze(-1) == 0)
-
-
 def test_table_contact_blocked():
     # walk the elbow down from a low pose until a step would put a sphere below the table
     model = UR5eReach(table_contact="block")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import sys
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from torchrl_silp.envs import ReachEnv
 from torchrl_silp.models import UR5eReach
 from torchrl_silp.models.learned_collision import (
     CollisionNet,
+    LearnedEdgeCheck,
     classification_metrics,
     collision_dataset,
     load_collision_net,
@@ -83,6 +85,33 @@ def test_the_planner_asks_the_net_and_the_step_stays_exact(model):
         assert torch.equal(a, b)
 
 
+def test_any_edge_check_decides_the_planners_segments_and_nothing_else(model):
+    # a check that calls a sample colliding where joint 0 exceeds 0.5: joint 0 moves linearly along a
+    # segment whose ends are both sampled, so a segment collides exactly where one of its ends does
+    planner_model = copy.copy(model)
+    planner_model.edge_check = lambda m, config, scene, margin: config[..., 0] > 0.5
+    gen = torch.Generator().manual_seed(0)
+    tasks = model.sample_tasks(64, gen)
+    q0 = tasks["joint_position"]
+    q1 = q0 + 0.6 * torch.randn(64, 3, generator=gen)
+    free = planner_model.segment_collision_free(q0, q1, tasks.select("obstacle"))
+    assert torch.equal(free, torch.maximum(q0[:, 0], q1[:, 0]) <= 0.5)
+    assert 0 < int(free.sum()) < 64
+    assert model.edge_check is None and not torch.equal(free, model.segment_collision_free(q0, q1, tasks.select("obstacle")))
+    # the motion check of the env's steps stays the model's collision test
+    flags, goals = planner_model.motion_collision_flags(q0, q1, tasks.select("obstacle"))
+    exact_flags, exact_goals = model.motion_collision_flags(q0, q1, tasks.select("obstacle"))
+    assert torch.equal(flags, exact_flags) and torch.equal(goals, exact_goals)
+
+
+def test_the_learned_edge_check_refuses_a_bad_net_or_threshold():
+    with pytest.raises(TypeError, match="net"):
+        LearnedEdgeCheck(torch.nn.Linear(9, 1))
+    for bad in (0.0, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="threshold"):
+            LearnedEdgeCheck(constant_net(0.0), bad)
+
+
 def test_a_trained_net_separates_the_classes(model):
     inputs, labels, _, _ = collision_dataset(model, 30_000, torch.Generator().manual_seed(1), n_scenes=300)
     net, result = train_collision_net(inputs, labels, epochs=4, batch_size=256, lr=2e-3, seed=0)
@@ -109,5 +138,6 @@ def test_the_recipe_option_loads_the_net_into_the_planners_model(model, tmp_path
         cfg = compose(config_name="sac_silp", overrides=[f"planner.collision_net={path}", "planner.collision_threshold=0.7"])
     buffers = utils.make_buffers(cfg, model, torch.device("cpu"))
     planner_model = buffers.demo_buffer.model
-    assert planner_model.collision_threshold == 0.7 and isinstance(planner_model, UR5eReach)
-    assert planner_model.collision_net.mlp[-1].bias.item() == 20.0
+    assert planner_model.edge_check.threshold == 0.7 and type(planner_model) is UR5eReach
+    assert planner_model.edge_check.net.mlp[-1].bias.item() == 20.0
+    assert model.edge_check is None  # the env's model keeps the exact check

@@ -17,11 +17,9 @@ from torchrl_silp.planning import (
     ExperienceRoadmap,
     all_pairs_distances,
     astar_paths,
-    clearance_radius,
     greedy_paths,
     plan_demonstrations,
     roadmap_paths,
-    segment_collision_free,
     shortest_paths,
     split_episodes,
 )
@@ -579,13 +577,15 @@ def test_goal_node_demonstrations_reach_the_real_goal(model, envs):
 
 
 # ---------------------------------------------------------------- edge checks
-def test_clearance_radius_agrees_with_the_collision_check(model):
+def test_clearance_over_lipschitz_is_a_radius_free_of_collisions(model):
     gen = torch.Generator().manual_seed(0)
     tasks = model.sample_tasks(32, generator=gen)
     # around task configurations: a mix of free and colliding ones
     q = tasks["joint_position"].repeat(64, 1) + 0.6 * torch.randn(2048, 3, generator=gen)
     scene = tasks.select("obstacle").repeat(64)
-    rho = clearance_radius(model, q, scene)
+    # each reason's clearance (m) over its Lipschitz bound (m/rad): a joint-space radius (rad, max-norm)
+    lipschitz = torch.tensor([model.lipschitz()[r] for r in model.collision_reasons])
+    rho = (model.clearance(q, scene) / lipschitz).amin(-1)
     col = model.collides(q, scene)
     assert 0.1 < col.float().mean() < 0.9
     assert torch.equal(rho < 0, col)
@@ -610,25 +610,25 @@ def test_segment_check_against_a_hand_subdivision(model, exact_model):
     q1 = q0 + 0.4 * torch.randn(24, 3, generator=gen)
     scene = tasks.select("obstacle")
     for m in (model, exact_model):
-        free = segment_collision_free(m, q0, q1, scene, 0.02)
+        free = m.segment_collision_free(q0, q1, scene, 0.02)
         single = torch.tensor([hand_segment_free(m, a, b, scene[k], 0.02) for k, (a, b) in enumerate(zip(q0, q1))])
         assert torch.equal(free, single)
         assert 0 < int(free.sum()) < 24
         # the default resolution is the model's
-        assert torch.equal(segment_collision_free(m, q0, q1, scene), m.segment_collision_free(q0, q1, scene, 0.01))
+        assert torch.equal(m.segment_collision_free(q0, q1, scene), m.segment_collision_free(q0, q1, scene, 0.01))
     # the exact check (no margin) is the collision test of each sample
     assert set(exact_model.motion_margin(0.02).values()) == {0.0}
     assert min(model.motion_margin(0.02).values()) > 0
     # conservative: a passing segment is free at every point, which an exact 8x finer subdivision confirms
-    conservative = segment_collision_free(model, q0, q1, scene, 0.02)
-    fine = segment_collision_free(exact_model, q0, q1, scene, 0.0025)
+    conservative = model.segment_collision_free(q0, q1, scene, 0.02)
+    fine = exact_model.segment_collision_free(q0, q1, scene, 0.0025)
     assert not (conservative & ~fine).any()
     # and it is stricter than the exact check at the same resolution
-    assert not (conservative & ~segment_collision_free(exact_model, q0, q1, scene, 0.02)).any()
-    with pytest.raises(ValueError, match="q_from and q_to"):
-        segment_collision_free(model, q0, q1[:3], scene)
-    with pytest.raises(ValueError, match="step_size"):
-        segment_collision_free(model, q0, q1, scene, 0.0)
+    assert not (conservative & ~exact_model.segment_collision_free(q0, q1, scene, 0.02)).any()
+    with pytest.raises(ValueError, match="config_from and config_to"):
+        model.segment_collision_free(q0, q1[:3], scene)
+    with pytest.raises(ValueError, match="resolution"):
+        model.segment_collision_free(q0, q1, scene, 0.0)
 
 
 # ---------------------------------------------------------------- search

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from torchrl_silp.validation import check_choice
+
 __all__ = ["GUARDS", "compile_kwargs", "skip_module_and_global_guards"]
 
 GUARDS = ("all", "inputs")
@@ -55,8 +57,7 @@ def compile_kwargs(guards: str = "inputs", mode: str | None = None, *, name: str
         >>> step(torch.zeros(4, 3)).shape
         torch.Size([4, 2])
     """
-    if guards not in GUARDS:
-        raise ValueError(f"{name} must be one of {GUARDS}, got {guards!r}")
+    check_choice(guards, GUARDS, name=name)
     if guards == "all":
         return {"mode": mode}
     from torch._inductor import list_mode_options

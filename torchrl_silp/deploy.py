@@ -8,6 +8,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_silp.compiling import compile_kwargs
 from torchrl_silp.models.base import as_model
+from torchrl_silp.validation import check_bool, check_positive_int
 
 __all__ = ["SingleTaskRollout"]
 
@@ -62,10 +63,8 @@ class SingleTaskRollout:
                  guards: str = "inputs"):
         if not callable(policy):
             raise TypeError(f"policy must be a TensorDict module or a callable td -> td, got {type(policy).__name__}")
-        if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-            raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
-        if not isinstance(compile, bool):
-            raise TypeError(f"compile must be a bool, got {compile!r}")
+        check_positive_int(max_steps, name="max_steps")
+        check_bool(compile, name="compile")
         compiling = compile_kwargs(guards)  # refuses an unknown guards, compiled or not
         self._policy = policy
         self._model = as_model(model)

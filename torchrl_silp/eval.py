@@ -12,6 +12,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_silp.envs.reach import ReachEnv
 from torchrl_silp.models.base import as_model
 from torchrl_silp.transforms import CollisionHandling
+from torchrl_silp.validation import check_positive_int
 
 __all__ = ["evaluate", "episode_outcomes", "DEFAULT_TEST_SEED", "DEFAULT_VALIDATION_SEED"]
 
@@ -89,8 +90,7 @@ def evaluate(
     """
     if not callable(policy):
         raise TypeError(f"policy must be a TensorDict module or a callable td -> td, got {type(policy).__name__}")
-    if isinstance(n_tasks, bool) or not isinstance(n_tasks, int) or n_tasks < 1:
-        raise ValueError(f"n_tasks must be a positive int, got {n_tasks!r}")
+    check_positive_int(n_tasks, name="n_tasks")
     if env is None and model is None:
         raise ValueError("evaluate needs model (the task model) or env")
     if device is None:

@@ -14,6 +14,8 @@ from tensordict import TensorDictBase
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import Transform
 
+from torchrl_silp.validation import check_choice, check_nonnegative_float
+
 __all__ = ["CollisionHandling", "GoalRelative", "PerceptionNoise", "COLLISION_TYPES"]
 
 COLLISION_TYPES = (0, 1, 2)
@@ -70,8 +72,7 @@ class CollisionHandling(_ModelTransform):
     """
 
     def __init__(self, collision_type: int = 2, model=None):
-        if isinstance(collision_type, bool) or collision_type not in COLLISION_TYPES:
-            raise ValueError(f"collision_type must be one of {COLLISION_TYPES}, got {collision_type!r}")
+        check_choice(collision_type, COLLISION_TYPES, name="collision_type")
         super().__init__(model, in_keys=[], out_keys=["discard"])
         self.collision_type = collision_type
 
@@ -181,8 +182,7 @@ class PerceptionNoise(_ModelTransform):
     def __init__(self, std: dict | None = None, model=None, out_key: str = "observation", generator=None):
         std = {"joint_position": 0.01, "obstacle": 0.01} if std is None else dict(std)
         for key, value in std.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-                raise ValueError(f"std[{key!r}] must be a finite number >= 0, got {value!r}")
+            check_nonnegative_float(value, name=f"std[{key!r}]")
         super().__init__(model, in_keys=[], out_keys=[out_key])
         self.std = std
         self.out_key = out_key

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
-import math
 import time
 from collections.abc import Iterator, Sequence
 
@@ -33,6 +32,7 @@ from torchrl_silp.data.demo_buffer import transition_keys
 from torchrl_silp.eval import DEFAULT_TEST_SEED, evaluate
 from torchrl_silp.models.base import TaskModel, as_model
 from torchrl_silp.planning.demos import demo_start_flags
+from torchrl_silp.validation import check_bool, check_nonnegative_int, check_positive_float, check_positive_int
 
 _has_ompl = importlib.util.find_spec("ompl") is not None
 if _has_ompl:
@@ -59,24 +59,6 @@ def _require_ompl(what: str) -> None:
         raise ImportError(
             f"{what} needs OMPL, which is not installed: pip install \"torchrl_silp[planning]\""
         )
-
-
-def _check_positive(name: str, value, unit: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number of {unit}, got {value!r}")
-    return float(value)
-
-
-def _check_int(name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
-    return value
-
-
-def _check_bool(name: str, value) -> bool:
-    if not isinstance(value, bool):
-        raise ValueError(f"{name} must be a bool, got {value!r}")
-    return value
 
 
 def _progress_bar(total: int, desc: str, enabled: bool):
@@ -187,12 +169,11 @@ class PRMPlanner:
     ):
         _require_ompl("PRMPlanner")
         self.model = model = as_model(model)
-        self.budget_s = _check_positive("budget_s", budget_s, "seconds")
-        self.edge_step = model.motion_resolution if edge_step is None else _check_positive(
-            "edge_step", edge_step, "radians"
-        )
-        self.seed = None if seed is None else _check_int("seed", seed, 0)
-        self.simplify = _check_bool("simplify", simplify)
+        self.budget_s = check_positive_float(budget_s, name="budget_s", unit="seconds")
+        self.edge_step = model.motion_resolution if edge_step is None else check_positive_float(
+            edge_step, name="edge_step", unit="radians")
+        self.seed = check_nonnegative_int(seed, name="seed", optional=True)
+        self.simplify = check_bool(simplify, name="simplify")
         self._seeds = None if seed is None else torch.Generator().manual_seed(seed)
         self.dim = D = int(model.config_dim)
         self._low = model.config_low.detach().double().cpu().reshape(D).tolist()
@@ -237,7 +218,7 @@ class PRMPlanner:
         A collection resumed at task ``n`` plans each later task with the seed
         that the uninterrupted one would have used.
         """
-        _check_int("n_calls", n_calls, 0)
+        check_nonnegative_int(n_calls, name="n_calls")
         if self._seeds is not None:
             for _ in range(n_calls):
                 self._next_seed()
@@ -361,7 +342,7 @@ def path_to_actions(path: torch.Tensor, action_scale: float) -> torch.Tensor:
         raise ValueError(f"path must be a tensor of shape (n, D) with n, D >= 1, got {getattr(path, 'shape', type(path))}")
     if not path.is_floating_point() or not bool(torch.isfinite(path).all()):
         raise ValueError("path must be a finite floating tensor")
-    _check_positive("action_scale", action_scale, "radians")
+    check_positive_float(action_scale, name="action_scale", unit="radians")
     delta = path[1:] - path[:-1]
     n = torch.ceil(delta.abs().amax(-1) / action_scale).long()
     actions = (delta / (n.clamp(min=1).unsqueeze(-1) * action_scale)).clamp(-1.0, 1.0)
@@ -498,10 +479,10 @@ def evaluate_prm(
     """
     _require_ompl("evaluate_prm")
     model = as_model(model)
-    _check_int("n_tasks", n_tasks, 1)
-    _check_int("seed", seed, 0)
-    _check_int("max_steps", max_steps, 1)
-    _check_bool("progress", progress)
+    check_positive_int(n_tasks, name="n_tasks")
+    check_nonnegative_int(seed, name="seed")
+    check_positive_int(max_steps, name="max_steps")
+    check_bool(progress, name="progress")
     planner = PRMPlanner(model, budget_s, seed=ompl_seed, edge_step=edge_step, simplify=simplify)
     device = _device(model, device)
     # the tasks of evaluate's env: ReachEnv(model, num_envs=n_tasks, seed=seed)'s first reset
@@ -696,12 +677,12 @@ def prm_demonstration_batches(
     """
     _require_ompl("prm_demonstration_batches")
     model = as_model(model)
-    _check_int("n_episodes", n_episodes, 1)
-    _check_int("seed", seed, 0)
-    _check_int("max_steps", max_steps, 1)
-    _check_bool("progress", progress)
+    check_positive_int(n_episodes, name="n_episodes")
+    check_nonnegative_int(seed, name="seed")
+    check_positive_int(max_steps, name="max_steps")
+    check_bool(progress, name="progress")
     batch = min(n_episodes, _COLLECT_BATCH)
-    _check_int("start_episode", start_episode, 0)
+    check_nonnegative_int(start_episode, name="start_episode")
     if start_episode >= n_episodes or start_episode % batch:
         raise ValueError(f"start_episode must be a multiple of the batch size {batch} below n_episodes={n_episodes}, "
                          f"got {start_episode}")

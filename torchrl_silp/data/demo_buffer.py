@@ -16,6 +16,7 @@ from torchrl_silp.data.storage import FilledStorageCheckpointer
 from torchrl_silp.models.base import as_model
 from torchrl_silp.planning import plan_demonstrations
 from torchrl_silp.planning.demos import check_planner_kwargs
+from torchrl_silp.validation import check_choice, check_positive_int, check_probability
 
 __all__ = ["DemoReplayBuffer", "MixedReplay", "TRANSITION_KEYS", "transition_keys"]
 
@@ -122,8 +123,7 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
     ):
         model = as_model(model)
         if storage is None:
-            if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
-                raise ValueError(f"capacity must be a positive int, got {capacity!r}")
+            check_positive_int(capacity, name="capacity")
             storage = LazyTensorStorage(capacity, device=_storage_device(device))
             kwargs.setdefault("checkpointer", FilledStorageCheckpointer())
         planner_kwargs = dict(planner_kwargs or {})
@@ -279,15 +279,13 @@ class MixedReplay:
     ):
         if keys is None:
             keys = getattr(demo_buffer, "keys", None) or TRANSITION_KEYS
-        if demo_fraction != "proportional" and (
-            isinstance(demo_fraction, bool) or not isinstance(demo_fraction, (int, float)) or not 0.0 <= demo_fraction <= 1.0
-        ):
-            raise ValueError(f"demo_fraction must be a number in [0, 1] or 'proportional', got {demo_fraction!r}")
-        if batch_size is not None and (isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1):
-            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+        if isinstance(demo_fraction, str):  # else a number in [0, 1]
+            check_choice(demo_fraction, ("proportional",), name="demo_fraction")
+        else:
+            check_probability(demo_fraction, name="demo_fraction", closed=True)
+        check_positive_int(batch_size, name="batch_size", optional=True)
         if interaction_buffer is None:
-            if isinstance(interaction_capacity, bool) or not isinstance(interaction_capacity, int) or interaction_capacity < 1:
-                raise ValueError(f"interaction_capacity must be a positive int, got {interaction_capacity!r}")
+            check_positive_int(interaction_capacity, name="interaction_capacity")
             interaction_buffer = TensorDictReplayBuffer(
                 storage=LazyTensorStorage(interaction_capacity, device=_storage_device(device)),
                 checkpointer=FilledStorageCheckpointer(),
@@ -333,8 +331,7 @@ class MixedReplay:
         batch_size = self.batch_size if batch_size is None else batch_size
         if batch_size is None:
             raise ValueError("batch_size must be given here or to MixedReplay(batch_size=...)")
-        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+        check_positive_int(batch_size, name="batch_size")
         if len(self.demo_buffer) == 0 and len(self.interaction_buffer) == 0:
             raise RuntimeError("MixedReplay.sample: both buffers are empty")
         n_demo, n_pi = self.split(batch_size)

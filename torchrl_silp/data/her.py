@@ -10,6 +10,7 @@ from torchrl.data.replay_buffers.her import HindsightStrategy
 from torchrl_silp.data.demo_buffer import own_signature
 from torchrl_silp.data.storage import FilledStorageCheckpointer
 from torchrl_silp.models.base import as_model
+from torchrl_silp.validation import check_bool, check_choice, check_positive_int, check_probability
 
 __all__ = ["GoalRelabelingReplayBuffer", "HER_STRATEGIES"]
 
@@ -70,15 +71,11 @@ class GoalRelabelingReplayBuffer(HERReplayBuffer):
         **kwargs,
     ):
         model = as_model(model)
-        if strategy not in HER_STRATEGIES:
-            raise ValueError(f"strategy must be one of {HER_STRATEGIES}, got {strategy!r}")
-        if isinstance(her_ratio, bool) or not isinstance(her_ratio, (int, float)) or not 0 <= her_ratio <= 1:
-            raise ValueError(f"her_ratio must be a number in [0, 1], got {her_ratio!r}")
-        if not isinstance(collision_ends_episode, bool):
-            raise TypeError(f"collision_ends_episode must be a bool, got {collision_ends_episode!r}")
+        check_choice(strategy, HER_STRATEGIES, name="strategy")
+        check_probability(her_ratio, name="her_ratio", closed=True)
+        check_bool(collision_ends_episode, name="collision_ends_episode")
         if storage is None:
-            if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
-                raise ValueError(f"capacity must be a positive int, got {capacity!r}")
+            check_positive_int(capacity, name="capacity")
             storage = LazyTensorStorage(capacity, device="auto" if device is None else torch.device(device))
             kwargs.setdefault("checkpointer", FilledStorageCheckpointer())
         super().__init__(

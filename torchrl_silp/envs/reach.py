@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 
 import torch
@@ -14,6 +13,7 @@ from torchrl_silp.models.base import TaskModel
 from torchrl_silp.models.ur5e import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach
 from torchrl_silp.robot import UR5e
 from torchrl_silp.transforms import COLLISION_TYPES, CollisionHandling
+from torchrl_silp.validation import check_positive_int
 
 __all__ = ["ReachEnv", "UR5eReachEnv", "COLLISION_TYPES", "TASK_BRANCHES", "WORKSPACE_EXIT_MODES"]
 
@@ -22,18 +22,14 @@ def _as_batch_size(num_envs, batch_size) -> torch.Size:
     if num_envs is not None and batch_size is not None:
         raise ValueError("pass either num_envs or batch_size, not both")
     if num_envs is not None:
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
-        return torch.Size([num_envs])
+        return torch.Size([check_positive_int(num_envs, name="num_envs")])
     if batch_size is None:
         return torch.Size([])
     if isinstance(batch_size, int):
         batch_size = (batch_size,)
-    if not isinstance(batch_size, Sequence) or not all(
-        isinstance(b, int) and not isinstance(b, bool) and b >= 1 for b in batch_size
-    ):
-        raise ValueError(f"batch_size must be a tuple of positive ints, got {batch_size!r}")
-    return torch.Size(batch_size)
+    if not isinstance(batch_size, Sequence):
+        raise TypeError(f"batch_size must be a tuple of positive ints, got {batch_size!r}")
+    return torch.Size([check_positive_int(b, name=f"batch_size[{i}]") for i, b in enumerate(batch_size)])
 
 
 class ReachEnv(EnvBase):
@@ -92,8 +88,7 @@ class ReachEnv(EnvBase):
         if not isinstance(model, TaskModel):
             raise TypeError(f"model must be a torchrl_silp.models.TaskModel, got {type(model).__name__}")
         batch = _as_batch_size(num_envs, batch_size)
-        if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-            raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
+        check_positive_int(max_steps, name="max_steps")
         device = torch.device(model.device if device is None else device)
         super().__init__(device=device, batch_size=batch)
         if model.device != device:
@@ -284,39 +279,6 @@ class UR5eReachEnv(TransformedEnv):
     def robot(self) -> UR5e:
         """The model's :class:`~torchrl_silp.robot.UR5e`."""
         return self.base_env.model.robot
-
-    # ------------------------------------------------ deprecated flat-observation API
-    # The task's functions moved to the model (``env.model``), on named states. These aliases keep the
-    # old calls on the 15-D observation working; the layout is this env's own.
-    def _state(self, obs: torch.Tensor) -> TensorDict:
-        if not isinstance(obs, torch.Tensor) or obs.shape[-1:] != (15,):
-            raise ValueError(f"obs must be a tensor of shape (..., 15), got {getattr(obs, 'shape', type(obs))}")
-        parts = obs.split([3, 3, 6, 3], dim=-1)
-        return TensorDict(dict(zip(self.model.observation_keys, parts)), batch_size=obs.shape[:-1])
-
-    def transition(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Deprecated: ``model.transition`` on named states. The next 15-D observation."""
-        warnings.warn("UR5eReachEnv.transition is deprecated: use env.model.transition", DeprecationWarning, 2)
-        return self.model.observation(self.model.transition(self._state(obs), action))
-
-    def reward(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-        """Deprecated: ``model.reward`` on named states."""
-        warnings.warn("UR5eReachEnv.reward is deprecated: use env.model.reward", DeprecationWarning, 2)
-        return self.model.reward(self._state(obs), self._state(next_obs))
-
-    def collides(self, q3: torch.Tensor, obstacle: torch.Tensor) -> torch.Tensor:
-        """Deprecated: ``model.collides``."""
-        warnings.warn("UR5eReachEnv.collides is deprecated: use env.model.collides", DeprecationWarning, 2)
-        return self.model.collides(q3, obstacle)
-
-    def edge_collision_free(self, q_from, q_to, obstacle, step_size: float | None = None) -> torch.Tensor:
-        """Deprecated: ``model.motion_collision_flags`` (the env's own motion check)."""
-        warnings.warn("UR5eReachEnv.edge_collision_free is deprecated: use env.model.motion_collision_flags",
-                      DeprecationWarning, 2)
-        batch = torch.broadcast_shapes(q_from.shape[:-1], q_to.shape[:-1], obstacle.shape[:-1])
-        scene = TensorDict(obstacle=obstacle.expand(*batch, 6), batch_size=batch)
-        flags, _ = self.model.motion_collision_flags(q_from.expand(*batch, 3), q_to.expand(*batch, 3), scene, step_size)
-        return flags.squeeze(-1) == 0
 
     @property
     def collision_type(self) -> int | None:

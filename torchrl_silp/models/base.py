@@ -27,6 +27,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Composite, Unbounded
 from torchrl.envs import CatTensors
 
+from torchrl_silp.validation import all_finite, check_bool, check_finite, check_positive_float, check_tensor
+
 __all__ = ["TaskModel", "as_model", "CONFIG_KEY", "ACHIEVED_GOAL_KEY", "DESIRED_GOAL_KEY", "GOAL_CONFIG_KEY"]
 
 CONFIG_KEY = "joint_position"
@@ -38,21 +40,6 @@ GOAL_CONFIG_KEY = "goal_joint_position"
 _CHUNK = 32768
 
 
-def _all_finite(value: torch.Tensor) -> torch.Tensor:
-    # amax propagates NaN and abs turns -inf into inf: a 0-dim bool, ~4x cheaper than isfinite(value).all()
-    if value.numel() == 0:
-        return torch.ones((), dtype=torch.bool, device=value.device)
-    return value.abs().amax().isfinite()
-
-
-def _check_finite(name: str, value: torch.Tensor) -> None:
-    # value checks read the data: inside torch.compile they would break the graph at every call
-    if torch.compiler.is_compiling():
-        return
-    if not bool(_all_finite(value)):
-        raise ValueError(f"{name} contains NaN or inf")
-
-
 def check_boxes(name: str, boxes: torch.Tensor) -> None:
     """Boxes ``(..., 6k)`` ``(xmin, xmax, ymin, ymax, zmin, zmax)``: finite, each min <= max."""
     if torch.compiler.is_compiling():
@@ -61,19 +48,19 @@ def check_boxes(name: str, boxes: torch.Tensor) -> None:
     if b.numel() == 0:
         return
     # one host sync on the hot path (a NaN fails the comparison too); the messages are told apart after
-    if bool(((b[..., 1] - b[..., 0]).amin() >= 0) & _all_finite(b)):
+    if bool(((b[..., 1] - b[..., 0]).amin() >= 0) & all_finite(b)):
         return
-    _check_finite(name, boxes)
+    check_finite(boxes, name=name)
     raise ValueError(f"{name}: a box has min > max (boxes are (xmin, xmax, ymin, ymax, zmin, zmax))")
 
 
+# the robot layer's names for check_finite / check_tensor, with the name first
+def _check_finite(name: str, value: torch.Tensor) -> None:
+    check_finite(value, name=name)
+
+
 def _check_tensor(name: str, value, last_dim: int | None = None) -> None:
-    if not isinstance(value, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
-    if not value.is_floating_point():
-        raise TypeError(f"{name} must be a floating tensor, got {value.dtype}")
-    if last_dim is not None and value.shape[-1:] != (last_dim,):
-        raise ValueError(f"{name} must have shape (..., {last_dim}), got {tuple(value.shape)}")
+    check_tensor(value, name=name, last_dim=last_dim)
 
 
 def as_model(obj, name: str = "model") -> "TaskModel":
@@ -121,6 +108,11 @@ class TaskModel(ABC):
     success_reward: float = 1.0
     #: names of the bits of :meth:`collision_flags`, lowest bit first
     collision_reasons: tuple[str, ...] = ()
+    #: the planner's test of the configurations sampled along an edge, if not the model's collision test:
+    #: ``edge_check(model, config, scene, margin)`` -> bool ``config.shape[:-1]`` (True: collides), e.g.
+    #: :class:`~torchrl_silp.models.learned_collision.LearnedEdgeCheck`. Read by
+    #: :meth:`segment_collision_free` only: the env's step and the rewards stay exact.
+    edge_check = None
 
     def __init__(
         self,
@@ -131,21 +123,11 @@ class TaskModel(ABC):
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
     ):
-        if isinstance(success_distance, bool) or not isinstance(success_distance, (int, float)) or not (
-            math.isfinite(success_distance) and success_distance > 0
-        ):
-            raise ValueError(f"success_distance must be a positive number of metres, got {success_distance!r}")
-        if isinstance(motion_resolution, bool) or not isinstance(motion_resolution, (int, float)) or not (
-            math.isfinite(motion_resolution) and motion_resolution > 0
-        ):
-            raise ValueError(f"motion_resolution must be a positive number of radians, got {motion_resolution!r}")
-        if not isinstance(conservative, bool):
-            raise TypeError(f"conservative must be a bool, got {conservative!r}")
+        self.success_distance = check_positive_float(success_distance, name="success_distance", unit="metres")
+        self.motion_resolution = check_positive_float(motion_resolution, name="motion_resolution", unit="radians")
+        self.conservative = check_bool(conservative, name="conservative")
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-        self.success_distance = float(success_distance)
-        self.motion_resolution = float(motion_resolution)
-        self.conservative = conservative
         self.device = torch.device("cpu" if device is None else device)
         self.dtype = dtype
 
@@ -265,7 +247,7 @@ class TaskModel(ABC):
 
     def next_config(self, config: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """``config + action_scale * clip(action, -1, 1)``, clipped to the joint limits."""
-        _check_tensor("action", action, self.action_dim)
+        check_tensor(action, name="action", last_dim=self.action_dim)
         step = action.to(config.dtype).clamp(-1.0, 1.0) * self.action_scale
         return torch.minimum(torch.maximum(config + step, self.config_low), self.config_high)
 
@@ -326,12 +308,23 @@ class TaskModel(ABC):
     ) -> torch.Tensor:
         """A flat batch of segments ``(P, D)``, each sampled at its own count (ragged): bool ``(P,)``.
 
-        The predicate of :meth:`motion_collision_flags` on each segment alone; a batch
-        costs the sum of its segments' counts, not the longest one's count times ``P``.
+        The predicate of :meth:`motion_collision_flags` on each segment alone (or of
+        :attr:`edge_check`, where set); a batch costs the sum of its segments' counts, not the
+        longest one's count times ``P``.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_silp.models import UR5eReach
+            >>> model = UR5eReach()
+            >>> task = model.sample_tasks(2, torch.Generator().manual_seed(0))
+            >>> q = task["joint_position"]
+            >>> model.segment_collision_free(q, q + 0.05, task.select("obstacle")).shape
+            torch.Size([2])
         """
-        h = self.motion_resolution if resolution is None else float(resolution)
-        if isinstance(h, bool) or not (math.isfinite(h) and h > 0):
-            raise ValueError(f"resolution must be a positive number of radians, got {resolution!r}")
+        h = self.motion_resolution if resolution is None else check_positive_float(resolution, name="resolution", unit="radians")
+        if config_from.shape != config_to.shape or config_from.dim() != 2 or config_from.shape[-1] != self.config_dim:
+            raise ValueError(f"config_from and config_to must have one shape (P, {self.config_dim}), "
+                             f"got {tuple(config_from.shape)} and {tuple(config_to.shape)}")
         P = config_from.shape[0]
         device = config_from.device
         if P == 0:
@@ -356,8 +349,10 @@ class TaskModel(ABC):
 
     def edge_samples_collide(self, config: torch.Tensor, scene: TensorDictBase, margin: dict[str, float]) -> torch.Tensor:
         """The test :meth:`segment_collision_free` applies to each configuration it samples along a segment:
-        bool ``config.shape[:-1]``. Here the collision test with the motion ``margin``; a learned collision
-        model can stand in for it (:func:`~torchrl_silp.models.learned_collision.with_learned_edges`)."""
+        bool ``config.shape[:-1]``. :attr:`edge_check` if set (e.g. a learned collision model), else the
+        collision test with the motion ``margin``."""
+        if self.edge_check is not None:
+            return self.edge_check(self, config, scene, margin)
         flags, _ = self.collision_flags(config, scene, margin)
         return flags.squeeze(-1) != 0
 
@@ -368,8 +363,8 @@ class TaskModel(ABC):
         caller inside ``vmap`` (a critic) uses :meth:`next_config` and :meth:`achieved_goal`.
         """
         self._check_state(state, "state")
-        _check_tensor("action", action, self.action_dim)
-        _check_finite("action", action)
+        check_tensor(action, name="action", last_dim=self.action_dim)
+        check_finite(action, name="action")
         config = self.next_config(state.get(self.config_key), action)
         out = state.select(*self.state_keys).clone(False)
         out.set(self.config_key, config)
@@ -398,8 +393,8 @@ class TaskModel(ABC):
         so the kinematics run once.
         """
         self._check_state(state, "state")
-        _check_tensor("action", action, self.action_dim)
-        _check_finite("action", action)
+        check_tensor(action, name="action", last_dim=self.action_dim)
+        check_finite(action, name="action")
         config = state.get(self.config_key)
         nxt = self.next_config(config, action)
         flags, goal = self.motion_collision_flags(config, nxt, state.select(*self.scene_keys))
@@ -428,7 +423,7 @@ class TaskModel(ABC):
 
     def relabel(self, state: TensorDictBase, goal: torch.Tensor) -> TensorDictBase:
         """``state`` with ``goal`` as its desired goal (a shallow copy)."""
-        _check_tensor("goal", goal, self.goal_dim)
+        check_tensor(goal, name="goal", last_dim=self.goal_dim)
         out = state.clone(False)
         out.set(self.desired_goal_key, goal.to(state.get(self.desired_goal_key).dtype).expand_as(state.get(self.desired_goal_key)))
         return out
@@ -448,4 +443,4 @@ class TaskModel(ABC):
         if missing:
             raise KeyError(f"{name} lacks the keys {missing} (a state holds {self.state_keys})")
         for key in self.state_keys:
-            _check_finite(f"{name}[{key!r}]", state.get(key))
+            check_finite(state.get(key), name=f"{name}[{key!r}]")

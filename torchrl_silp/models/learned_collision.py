@@ -1,4 +1,4 @@
-"""The learned collision model of the paper's appendix B, and a task model whose planner edges it checks.
+"""The learned collision model of the paper's appendix B, and the planner edge check that asks it.
 
 The paper's model M "predicts the collision probability given the robot's joints
 configuration and obstacle's information" with "three hidden layers (512, 256 and 64
@@ -9,6 +9,7 @@ MuJoCo twin's contacts, :func:`torchrl_silp.sim.mujoco_labels`).
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -17,9 +18,10 @@ from torch import nn
 from torchrl.modules import MLP
 
 from torchrl_silp.models.base import TaskModel, as_model
+from torchrl_silp.validation import check_positive_int, check_probability
 
 __all__ = ["CollisionNet", "collision_dataset", "train_collision_net", "classification_metrics", "roc_curve",
-           "with_learned_edges", "load_collision_net"]
+           "LearnedEdgeCheck", "with_learned_edges", "load_collision_net"]
 
 
 class CollisionNet(nn.Module):
@@ -34,9 +36,8 @@ class CollisionNet(nn.Module):
     def __init__(self, in_features: int, hidden_sizes=(512, 256, 64), mean: torch.Tensor | None = None,
                  std: torch.Tensor | None = None):
         super().__init__()
-        if isinstance(in_features, bool) or not isinstance(in_features, int) or in_features < 1:
-            raise ValueError(f"in_features must be an int >= 1, got {in_features!r}")
-        self.in_features, self.hidden_sizes = in_features, tuple(int(h) for h in hidden_sizes)
+        self.in_features = check_positive_int(in_features, name="in_features")
+        self.hidden_sizes = tuple(int(h) for h in hidden_sizes)
         self.mlp = MLP(in_features=in_features, out_features=1, num_cells=list(self.hidden_sizes),
                        activation_class=nn.ReLU)
         self.register_buffer("mean", torch.zeros(in_features) if mean is None else mean.float().clone())
@@ -58,9 +59,8 @@ def collision_dataset(model, n: int, generator: torch.Generator | None = None, l
     none), each in one of ``n_scenes`` scenes of its task distribution, labelled by ``labeller(config, scene)``
     (the model's exact :meth:`~torchrl_silp.models.TaskModel.collides` by default: every collision reason)."""
     model = as_model(model)
-    for name, value in (("n", n), ("n_scenes", n_scenes)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    check_positive_int(n, name="n")
+    check_positive_int(n_scenes, name="n_scenes")
     low = torch.as_tensor(getattr(model, "TASK_JOINT_LOW", model.config_low), dtype=model.dtype)
     high = torch.as_tensor(getattr(model, "TASK_JOINT_HIGH", model.config_high), dtype=model.dtype)
     u = torch.rand(n, low.shape[-1], generator=generator, dtype=low.dtype)
@@ -106,11 +106,9 @@ def train_collision_net(inputs: torch.Tensor, labels: torch.Tensor, *, epochs: i
                         log=None) -> tuple[CollisionNet, dict]:
     """Train a :class:`CollisionNet` on ``(1 - test_fraction)`` of the data (Adam, binary cross-entropy) and
     evaluate it on the rest: ``(net, {"metrics", "roc", "train_n", "test_n", "epochs"})``."""
-    if not (0 < test_fraction < 1):
-        raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction!r}")
-    for name, value in (("epochs", epochs), ("batch_size", batch_size)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    check_probability(test_fraction, name="test_fraction")
+    check_positive_int(epochs, name="epochs")
+    check_positive_int(batch_size, name="batch_size")
     gen = torch.Generator().manual_seed(seed)
     n = len(labels)
     perm = torch.randperm(n, generator=gen)
@@ -140,41 +138,55 @@ def train_collision_net(inputs: torch.Tensor, labels: torch.Tensor, *, epochs: i
                  "train_n": len(train), "test_n": n_test, "epochs": epochs}
 
 
-class _LearnedEdges:
-    """Mixed into a task model's class: the planner's edge check asks the collision net, nothing else changes."""
+class LearnedEdgeCheck:
+    """A task model's planner edge check (:attr:`~torchrl_silp.models.TaskModel.edge_check`) by a
+    :class:`CollisionNet`: a sampled configuration collides where the net's probability exceeds ``threshold``.
 
-    collision_net: CollisionNet
-    collision_threshold: float
+    The net stands in for the exact test and its Lipschitz margin (``margin`` is not read); the sampling
+    along segments stays the model's, as in the paper's planner.
 
-    def edge_samples_collide(self, config, scene, margin) -> torch.Tensor:
-        # the net replaces the exact test and its Lipschitz margin; the sampling along segments is the model's
-        with torch.no_grad():
-            prob = torch.sigmoid(self.collision_net(_features(self, config, scene).float()))
-        return prob > self.collision_threshold
-
-
-def with_learned_edges(model, net: CollisionNet, threshold: float = 0.5) -> TaskModel:
-    """The task model with its planner edge check (``segment_collision_free``, through ``edge_samples_collide``)
-    done by ``net`` at ``threshold``,
-    as the paper's planner does; the env's own step, the rewards and the demonstrations' checks stay exact.
+    Args:
+        net: the collision model, over ``[config, scene...]`` (the model's scene keys, flattened).
+        threshold: the collision probability above which a configuration collides, in (0, 1).
 
     Examples:
         >>> import torch
         >>> from torchrl_silp.models import UR5eReach
         >>> model = UR5eReach()
+        >>> check = LearnedEdgeCheck(CollisionNet(3 + 6), threshold=0.5)
+        >>> task = model.sample_tasks(4, torch.Generator().manual_seed(0))
+        >>> check(model, task["joint_position"], task.select("obstacle"), margin={}).shape
+        torch.Size([4])
+    """
+
+    def __init__(self, net: CollisionNet, threshold: float = 0.5):
+        if not isinstance(net, CollisionNet):
+            raise TypeError(f"net must be a CollisionNet, got {type(net).__name__}")
+        self.net = net
+        self.threshold = check_probability(threshold, name="threshold")
+
+    def __call__(self, model: TaskModel, config: torch.Tensor, scene: TensorDictBase, margin) -> torch.Tensor:
+        with torch.no_grad():
+            prob = torch.sigmoid(self.net(_features(model, config, scene).float()))
+        return prob > self.threshold
+
+
+def with_learned_edges(model, net: CollisionNet, threshold: float = 0.5) -> TaskModel:
+    """A shallow copy of the task model whose planner edge check (``segment_collision_free``) asks ``net``
+    at ``threshold`` (:class:`LearnedEdgeCheck`), as the paper's planner does; the env's own step, the
+    rewards and the demonstrations' checks stay exact. ``model`` itself is left as it is.
+
+    Examples:
+        >>> from torchrl_silp.models import UR5eReach
+        >>> model = UR5eReach()
         >>> learned = with_learned_edges(model, CollisionNet(3 + 6))
-        >>> isinstance(learned, UR5eReach), learned.collision_threshold
-        (True, 0.5)
+        >>> type(learned) is UR5eReach, learned.edge_check.threshold, model.edge_check
+        (True, 0.5, None)
     """
     model = as_model(model)
-    if not isinstance(net, CollisionNet):
-        raise TypeError(f"net must be a CollisionNet, got {type(net).__name__}")
-    if not (isinstance(threshold, (int, float)) and 0 < threshold < 1):
-        raise ValueError(f"threshold must be in (0, 1), got {threshold!r}")
-    cls = type(f"LearnedEdges{type(model).__name__}", (_LearnedEdges, type(model)), {})
-    out = cls.__new__(cls)
-    out.__dict__.update(model.__dict__)
-    out.collision_net, out.collision_threshold = net, float(threshold)
+    check = LearnedEdgeCheck(net, threshold)
+    out = copy.copy(model)
+    out.edge_check = check
     return out
 
 

@@ -29,12 +29,12 @@ it is no TensorDict module (it has no ``in_keys`` / ``out_keys``): give TorchRL
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 from torch.nn.parameter import UninitializedParameter
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+from torchrl_silp.validation import check_probability
 
 __all__ = ["make_averaged_actor"]
 
@@ -75,8 +75,7 @@ def make_averaged_actor(actor: nn.Module, decay: float) -> AveragedModel:
         >>> averaged.module(TensorDict(observation=torch.zeros(3, 2), batch_size=[3]))["action"].shape
         torch.Size([3, 1])
     """
-    if isinstance(decay, bool) or not isinstance(decay, (int, float)) or not (math.isfinite(decay) and 0 < decay < 1):
-        raise ValueError(f"decay must be a number in (0, 1), got {decay!r}")
+    check_probability(decay, name="decay")
     if not isinstance(actor, nn.Module):
         raise TypeError(f"actor must be an nn.Module, got {type(actor).__name__}")
     if any(isinstance(p, UninitializedParameter) for p in actor.parameters()):

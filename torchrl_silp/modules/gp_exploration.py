@@ -13,6 +13,7 @@ from torchrl.envs import TensorDictPrimer
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from torchrl_silp.models.base import TaskModel
+from torchrl_silp.validation import check_bool, check_choice, check_positive_float, check_positive_int
 
 __all__ = [
     "GPGuidedExploration",
@@ -439,20 +440,15 @@ class GPGuidedExploration(TensorDictModuleBase):
     ):
         if not isinstance(model, TaskModel):
             raise TypeError(f"model must be a torchrl_silp.models.TaskModel, got {type(model).__name__}")
-        if mode not in GP_EXPLORATION_MODES:
-            raise ValueError(f"mode must be one of {GP_EXPLORATION_MODES}, got {mode!r}")
+        check_choice(mode, GP_EXPLORATION_MODES, name="mode")
         counts = (("num_candidates", num_candidates), ("history_size", history_size), ("fit_steps", fit_steps))
         for name, value in counts:
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+            check_positive_int(value, name=name)
         scales = (("lengthscale", lengthscale), ("outputscale", outputscale), ("noise", noise), ("fit_lr", fit_lr))
         for name, value in scales:
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        for name, value in (("fit_hyperparameters", fit_hyperparameters),
-                            ("mask_colliding_candidates", mask_colliding_candidates)):
-            if not isinstance(value, bool):
-                raise TypeError(f"{name} must be a bool, got {value!r}")
+            check_positive_float(value, name=name)
+        check_bool(fit_hyperparameters, name="fit_hyperparameters")
+        check_bool(mask_colliding_candidates, name="mask_colliding_candidates")
         if generator is not None and not isinstance(generator, torch.Generator):
             raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
         super().__init__()

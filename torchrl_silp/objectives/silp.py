@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -13,6 +12,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
 from torchrl_silp.models.base import as_model
+from torchrl_silp.validation import check_choice, check_nonnegative_float, check_positive_int, check_probability
 
 __all__ = ["SILPLoss", "BC_FILTERS", "DEMO_ROWS"]
 
@@ -182,19 +182,12 @@ class SILPLoss(LossModule):
                 f"loss_module.reduction must be 'mean' or 'sum' (the BC term is a scalar), "
                 f"got {loss_module.reduction!r}"
             )
-        if filter not in BC_FILTERS:
-            raise ValueError(f"filter must be one of {BC_FILTERS}, got {filter!r}")
-        if demo_rows not in DEMO_ROWS:
-            raise ValueError(f"demo_rows must be one of {DEMO_ROWS}, got {demo_rows!r}")
-        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-            raise ValueError(f"k must be an int >= 1 (look-ahead steps), got {k!r}")
-        for name, value in (("lambda1", lambda1), ("lambda2", lambda2)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        if gamma is not None and (
-            isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma <= 1.0
-        ):
-            raise ValueError(f"gamma must be None or a number in [0, 1], got {gamma!r}")
+        check_choice(filter, BC_FILTERS, name="filter")
+        check_choice(demo_rows, DEMO_ROWS, name="demo_rows")
+        check_positive_int(k, name="k")  # look-ahead steps
+        check_nonnegative_float(lambda1, name="lambda1")
+        check_nonnegative_float(lambda2, name="lambda2")
+        check_probability(gamma, name="gamma", closed=True, optional=True)
         if filter == "reward" and model is None:
             raise ValueError("filter='reward' needs model: the task model (a torchrl_silp.models.TaskModel)")
         if model is not None:

@@ -7,7 +7,6 @@ the conversion of planned paths to MDP demonstrations with InsertNodes
 """
 
 from torchrl_silp.planning.demos import paths_to_demonstrations, plan_demonstrations
-from torchrl_silp.planning.edges import clearance_radius, lipschitz_bounds, segment_collision_free
 from torchrl_silp.planning.roadmap import ExperienceRoadmap, split_episodes
 from torchrl_silp.planning.search import (
     SEARCH_METHODS,
@@ -23,9 +22,6 @@ __all__ = [
     "ExperienceRoadmap",
     "plan_demonstrations",
     "paths_to_demonstrations",
-    "segment_collision_free",
-    "clearance_radius",
-    "lipschitz_bounds",
     "split_episodes",
     "Paths",
     "SEARCH_METHODS",

@@ -6,9 +6,9 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_silp.models.base import as_model
-from torchrl_silp.planning.edges import _check_positive
 from torchrl_silp.planning.roadmap import ExperienceRoadmap
 from torchrl_silp.planning.search import SEARCH_METHODS, Paths, roadmap_paths
+from torchrl_silp.validation import check_bool, check_choice, check_nonnegative_int, check_positive_float
 
 __all__ = ["plan_demonstrations", "paths_to_demonstrations", "demo_start_flags", "check_planner_kwargs"]
 
@@ -135,8 +135,7 @@ def paths_to_demonstrations(
         >>> bool((demos["action"].abs() <= 1).all())
         True
     """
-    if insert_nodes not in INSERT_NODES:
-        raise ValueError(f"insert_nodes must be one of {INSERT_NODES}, got {insert_nodes!r}")
+    check_choice(insert_nodes, INSERT_NODES, name="insert_nodes")
     model = as_model(model)
     build = _default_observation(model, observation_transform)
     device, dtype = roadmap.device, model.dtype
@@ -212,25 +211,19 @@ def check_planner_kwargs(kwargs: dict) -> None:
         >>> check_planner_kwargs({"d": 0.0})
         Traceback (most recent call last):
         ...
-        ValueError: d must be a positive finite number of metres, got 0.0
+        ValueError: d must be a finite number > 0 (metres), got 0.0
     """
     unknown = sorted(set(kwargs) - set(PLANNER_OPTIONS))
     if unknown:
         raise TypeError(f"planner options {unknown} are unknown; allowed: {PLANNER_OPTIONS}")
     if "d" in kwargs:
-        _check_positive("d", kwargs["d"], "metres")
-    if kwargs.get("step_size") is not None:
-        _check_positive("step_size", kwargs["step_size"], "radians")
-    n_pairs = kwargs.get("n_pairs", 0)
-    if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
-        raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
-    if kwargs.get("method", "exact") not in SEARCH_METHODS:
-        raise ValueError(f"method must be one of {SEARCH_METHODS}, got {kwargs['method']!r}")
-    if kwargs.get("insert_nodes", "equal") not in INSERT_NODES:
-        raise ValueError(f"insert_nodes must be one of {INSERT_NODES}, got {kwargs['insert_nodes']!r}")
+        check_positive_float(kwargs["d"], name="d", unit="metres")
+    check_positive_float(kwargs.get("step_size"), name="step_size", unit="radians", optional=True)
+    check_nonnegative_int(kwargs.get("n_pairs", 0), name="n_pairs")
+    check_choice(kwargs.get("method", "exact"), SEARCH_METHODS, name="method")
+    check_choice(kwargs.get("insert_nodes", "equal"), INSERT_NODES, name="insert_nodes")
     for name in ("lazy", "goal_node", "own_query"):
-        if not isinstance(kwargs.get(name, False), bool):
-            raise TypeError(f"{name} must be a bool, got {kwargs[name]!r}")
+        check_bool(kwargs.get(name, False), name=name)
 
 
 def plan_demonstrations(
@@ -298,12 +291,9 @@ def plan_demonstrations(
         >>> int(demos["next", "done"].sum()) == int(demos["next", "success"].sum())
         True
     """
-    if method not in SEARCH_METHODS:
-        raise ValueError(f"method must be one of {SEARCH_METHODS}, got {method!r}")
-    if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
-        raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
-    if insert_nodes not in INSERT_NODES:
-        raise ValueError(f"insert_nodes must be one of {INSERT_NODES}, got {insert_nodes!r}")
+    check_choice(method, SEARCH_METHODS, name="method")
+    check_nonnegative_int(n_pairs, name="n_pairs")
+    check_choice(insert_nodes, INSERT_NODES, name="insert_nodes")
     model = as_model(model)
     roadmap = ExperienceRoadmap(model, episodes, d=d, step_size=step_size, lazy=lazy, goal_node=goal_node)
     episode, start, goal = roadmap.queries(n_pairs, generator, own_query=own_query)

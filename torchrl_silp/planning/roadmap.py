@@ -16,7 +16,7 @@ import torch
 from tensordict import TensorDictBase
 
 from torchrl_silp.models.base import as_model
-from torchrl_silp.planning.edges import _check_positive
+from torchrl_silp.validation import check_bool, check_nonnegative_int, check_positive_float
 
 __all__ = ["ExperienceRoadmap", "split_episodes"]
 
@@ -144,12 +144,11 @@ class ExperienceRoadmap:
     ):
         model = as_model(model)
         self.model = model
-        self.d = _check_positive("d", d, "metres")
-        self.step_size = model.motion_resolution if step_size is None else _check_positive("step_size", step_size, "radians")
-        if not isinstance(lazy, bool):
-            raise TypeError(f"lazy must be a bool, got {lazy!r}")
-        if not isinstance(goal_node, bool):
-            raise TypeError(f"goal_node must be a bool, got {goal_node!r}")
+        self.d = check_positive_float(d, name="d", unit="metres")
+        self.step_size = model.motion_resolution if step_size is None else check_positive_float(
+            step_size, name="step_size", unit="radians")
+        check_bool(lazy, name="lazy")
+        check_bool(goal_node, name="goal_node")
         starts, episode = split_episodes(episodes)
         cfg_key, goal_key = model.config_key, model.achieved_goal_key
         needed = [*model.state_keys, ("next", cfg_key), ("next", goal_key), ("next", "collision")]
@@ -337,8 +336,7 @@ class ExperienceRoadmap:
             ``(episode, start, goal)``, each long ``[Q]``, on the roadmap's device,
             grouped by episode, each episode's own query first.
         """
-        if isinstance(n_pairs, bool) or not isinstance(n_pairs, int) or n_pairs < 0:
-            raise ValueError(f"n_pairs must be an int >= 0, got {n_pairs!r}")
+        check_nonnegative_int(n_pairs, name="n_pairs")
         E, device = self.num_episodes, self.device
         has_goal_node = self.is_goal_node.any(-1)
         n = (self.num_nodes - has_goal_node.long()).unsqueeze(-1)  # visited nodes come first

@@ -27,6 +27,8 @@ from typing import NamedTuple
 
 import torch
 
+from torchrl_silp.validation import check_choice, check_nonnegative_int, check_positive_int
+
 __all__ = [
     "Paths",
     "all_pairs_distances",
@@ -283,10 +285,9 @@ def greedy_paths(
 def _greedy_walk(rows_fn, positions, episode, start, goal, max_steps) -> torch.Tensor:
     # rows_fn(cur [Q], visited [Q, N] (0 / inf), active [Q]) -> [Q, N] costs of the edges out of cur
     N = positions.shape[1]
+    check_nonnegative_int(max_steps, name="max_steps", optional=True)
     if max_steps is None:
         max_steps = N - 1
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 0:
-        raise ValueError(f"max_steps must be an int >= 0 or None, got {max_steps!r}")
     Q = episode.numel()
     pos = positions[episode]
     h = (pos - pos[torch.arange(Q, device=pos.device), goal].unsqueeze(1)).norm(dim=-1)
@@ -353,10 +354,8 @@ def roadmap_paths(
         >>> bool((exact.cost[greedy.found] <= greedy.cost[greedy.found] + 1e-6).all())
         True
     """
-    if method not in SEARCH_METHODS:
-        raise ValueError(f"method must be one of {SEARCH_METHODS}, got {method!r}")
-    if max_rounds is not None and (isinstance(max_rounds, bool) or not isinstance(max_rounds, int) or max_rounds < 1):
-        raise ValueError(f"max_rounds must be a positive int or None, got {max_rounds!r}")
+    check_choice(method, SEARCH_METHODS, name="method")
+    check_positive_int(max_rounds, name="max_rounds", optional=True)
     _check_graph(roadmap.distance, episode, start, goal)
     if method == "greedy":
         nodes = _greedy_on_roadmap(roadmap, episode, start, goal)

@@ -20,6 +20,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_silp.sim.transfer import Perception
 from torchrl_silp.sim.twin import MujocoTwin
+from torchrl_silp.validation import check_positive_int
 
 __all__ = ["PickPlaceTwin", "pick_place_tasks", "run_pick_place", "STAGES"]
 
@@ -135,8 +136,7 @@ def pick_place_tasks(model, n: int, seed: int) -> TensorDict:
     on the table in the workspace, clear of the box and of each other, with the pre-grasp and pre-place
     TCP poses reachable and collision-free (the model's checks), and the arm's start touching neither the
     cube nor the basket (the twin's contacts)."""
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"n must be an int >= 1, got {n!r}")
+    check_positive_int(n, name="n")
     gen = torch.Generator().manual_seed(seed)
     low, high = torch.tensor(model.WORKSPACE_LOW), torch.tensor(model.WORKSPACE_HIGH)
     picked, total = [], 0

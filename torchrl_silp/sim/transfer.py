@@ -16,6 +16,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_silp.sim.twin import MujocoTwin
+from torchrl_silp.validation import check_choice, check_nonnegative_float, check_nonnegative_int, check_positive_float, check_positive_int
 
 __all__ = ["Perception", "NOISE_LEVELS", "SCENARIOS", "scenario_tasks", "run_transfer"]
 
@@ -37,12 +38,9 @@ class Perception:
     joint_noise: float = 0.0
 
     def __post_init__(self):
-        for name in ("obstacle_noise", "joint_noise"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        if isinstance(self.latency_steps, bool) or not isinstance(self.latency_steps, int) or self.latency_steps < 0:
-            raise ValueError(f"latency_steps must be an int >= 0, got {self.latency_steps!r}")
+        check_nonnegative_float(self.obstacle_noise, name="obstacle_noise", unit="metres")
+        check_nonnegative_float(self.joint_noise, name="joint_noise", unit="radians")
+        check_nonnegative_int(self.latency_steps, name="latency_steps")
 
 
 # The paper localises the box with ArUco markers and a camera and gives no error figure. ArUco
@@ -89,13 +87,10 @@ def scenario_tasks(model, scenario: str, n: int, seed: int, *, margin: float = 0
     ``obstacle``, ``desired_goal``, ...) and, for *change*, ``obstacle_end`` (the box's second
     place), ``move_at_s`` and ``speed``.
     """
-    if scenario not in SCENARIOS:
-        raise ValueError(f"scenario must be one of {SCENARIOS}, got {scenario!r}")
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"n must be an int >= 1, got {n!r}")
+    check_choice(scenario, SCENARIOS, name="scenario")
+    check_positive_int(n, name="n")
     for name, value in (("margin", margin), ("speed", speed), ("move_at_s", move_at_s)):
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        check_nonnegative_float(value, name=name)
     if scenario == "change" and speed <= 0:
         raise ValueError(f"speed must be positive for the change scenario, got {speed!r}")
     gen = torch.Generator().manual_seed(seed)
@@ -167,17 +162,14 @@ def run_transfer(policy, model, tasks: TensorDict, *, observation_transform=None
     """
     if not isinstance(perception, Perception):
         raise TypeError(f"perception must be a Perception, got {type(perception).__name__}")
-    if not (isinstance(control_dt, (int, float)) and math.isfinite(control_dt) and control_dt > 0):
-        raise ValueError(f"control_dt must be a positive number of seconds, got {control_dt!r}")
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be an int >= 1, got {max_steps!r}")
+    check_positive_float(control_dt, name="control_dt", unit="seconds")
+    check_positive_int(max_steps, name="max_steps")
     n = len(tasks)
     twin = MujocoTwin(model, n_envs=n) if twin is None else twin
     if twin.n_envs != n:
         raise ValueError(f"twin has {twin.n_envs} worlds for {n} tasks")
     substeps = max(1, round(control_dt / twin.mj_model.opt.timestep))
-    if isinstance(updates_per_step, bool) or not isinstance(updates_per_step, int) or updates_per_step < 1:
-        raise ValueError(f"updates_per_step must be an int >= 1, got {updates_per_step!r}")
+    check_positive_int(updates_per_step, name="updates_per_step")
     chunks = min(updates_per_step, substeps)
     build = model.observation_transform() if observation_transform is None else observation_transform
     gen = torch.Generator().manual_seed(seed)

@@ -8,11 +8,12 @@ TCP say, not what the task model predicts.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from torchrl_silp.validation import check_float, check_positive_float, check_positive_int
 
 __all__ = ["MujocoTwin", "ServoGains", "mujoco_labels"]
 
@@ -33,9 +34,7 @@ class ServoGains:
 
     def __post_init__(self):
         for name in ("kp", "kv", "armature"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+            check_positive_float(getattr(self, name), name=name)
 
 
 class MujocoTwin:
@@ -74,10 +73,8 @@ class MujocoTwin:
     def __init__(self, model, n_envs: int = 1, *, timestep: float = 0.002, gains: ServoGains = ServoGains()):
         import mujoco
 
-        if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
-            raise ValueError(f"n_envs must be an int >= 1, got {n_envs!r}")
-        if not (isinstance(timestep, (int, float)) and 0 < timestep <= 0.01):
-            raise ValueError(f"timestep must be in (0, 0.01] seconds, got {timestep!r}")
+        check_positive_int(n_envs, name="n_envs")
+        check_float(timestep, name="timestep", low=0, low_open=True, high=0.01, unit="seconds")
         if not isinstance(gains, ServoGains):
             raise TypeError(f"gains must be a ServoGains, got {type(gains).__name__}")
         robot = getattr(model, "robot", None)
