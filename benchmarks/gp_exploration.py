@@ -30,19 +30,14 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import platform
-import sys
-from pathlib import Path
 
 import torch
-
 from tensordict import TensorDict
+from timing import median_ms  # benchmarks/timing.py, beside this script
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_silp.models import UR5eReach
 from torchrl_silp.modules.gp_exploration import GPGuidedExploration, fit_gp_hyperparameters, gp_posterior
-
-sys.path.insert(0, str(Path(__file__).parent))
-from timing import median_ms  # noqa: E402
 
 _has_gpytorch = importlib.util.find_spec("gpytorch") is not None
 

@@ -27,18 +27,16 @@ import argparse
 import os
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
-from utils import load_trained_networks, make_env, make_model, make_observation_transform  # noqa: E402
-
-from torchrl_silp import ReachEnv, SingleTaskRollout  # noqa: E402
-from torchrl_silp.eval import DEFAULT_TEST_SEED, evaluate  # noqa: E402
+from torchrl_silp import ReachEnv, SingleTaskRollout
+from torchrl_silp.eval import DEFAULT_TEST_SEED, evaluate
+from torchrl_silp.recipes.builders import make_env, make_model, make_observation_transform
+from torchrl_silp.recipes.checkpointing import load_trained_networks
 
 PAPER_MS_PER_ROLLOUT = 130.0  # the paper's Table 1: SAC-SILP+'s planning time per rollout
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,11 +26,9 @@ from pathlib import Path
 LOAD_AT_START = os.getloadavg()[0]  # before this benchmark's own imports count in it
 
 import torch  # noqa: E402
-from hydra import compose, initialize_config_dir  # noqa: E402
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
-import sac_silp  # noqa: E402  (registers the structured schema)
+from torchrl_silp.recipes import sac_silp  # noqa: E402
+from torchrl_silp.recipes.schema import load_config  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -46,11 +43,9 @@ def main(argv: list[str] | None = None) -> dict:
     load = LOAD_AT_START
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = args.run_dir or Path(tmp) / "run"
-        with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-            cfg = compose(config_name="sac_silp", overrides=[
-                *args.overrides, f"seed={args.seed}", f"stop_at_success={args.bar}",
-                f"run_dir={run_dir}", "progress=false",
-            ])
+        cfg = load_config("sac_silp", [
+            *args.overrides, f"seed={args.seed}", f"stop_at_success={args.bar}", f"run_dir={run_dir}", "progress=false",
+        ])
         if cfg.eval.seed == cfg.eval.test_seed:
             parser.error("eval.seed (the validation tasks it stops on) must differ from eval.test_seed")
         start = time.perf_counter()

@@ -42,27 +42,18 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import time
-from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
+from timing import interleaved_median_ms, median_ms  # benchmarks/timing.py, beside this script
 
-RECIPES = Path(__file__).parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
-import schema  # noqa: E402
-from utils import (  # noqa: E402
-    check_compile, compile_kwargs, compile_update, make_actor_critic, make_buffers, make_env, make_gradient_step,
-    make_loss, make_model, make_optimizers, resolve_device,
+from torchrl_silp.objectives import SILPLoss
+from torchrl_silp.recipes.builders import (
+    make_actor_critic, make_buffers, make_env, make_loss, make_model, make_optimizers,
 )
-
-from torchrl_silp.objectives import SILPLoss  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).parent))
-from timing import interleaved_median_ms, median_ms  # noqa: E402
-
-schema.register()
+from torchrl_silp.recipes.schema import load_config
+from torchrl_silp.recipes.start import resolve_device
+from torchrl_silp.recipes.update import check_compile, compile_kwargs, compile_update, make_gradient_step
 
 
 class _UnfusedModel:
@@ -188,8 +179,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 def _config(overrides: list[str]):
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        return compose(config_name="sac_silp", overrides=overrides)
+    return load_config("sac_silp", overrides)
 
 
 def _build(cfg, device: torch.device):

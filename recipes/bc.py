@@ -11,8 +11,8 @@ OMPL's PRM (``source=prm``); the transitions of the successful episodes are
 kept and cached in ``run_dir/demos.pt`` (batch by batch in ``run_dir/demos_partial/``
 while they are collected, so a killed run resumes at its next batch). A demonstration transition holds the
 model's named state (root and ``"next"``), the action, what the BC actor reads
-(``utils.observation_keys``, built from the named state by
-``utils.make_observation_transform``) and the episode's index. The recipes'
+(``observation_keys``, built from the named state by
+``make_observation_transform``) and the episode's index. The recipes'
 deterministic tanh actor is then fitted to the actions with TorchRL's
 ``BCLoss`` and evaluated on the fixed test tasks of ``evaluate``. The training
 wall time counted is collection plus fitting.
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 import time
 import warnings
 from collections.abc import Iterator, Sequence
@@ -49,16 +48,19 @@ from torch import optim
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.objectives import BCLoss
 
-sys.path.insert(0, str(Path(__file__).parent))
-import schema  # noqa: E402
-import utils  # noqa: E402
-
-from torchrl_silp import CollisionHandling, ReachEnv  # noqa: E402
+from torchrl_silp import CollisionHandling, ReachEnv
 # OMPL is needed only when they are called
-from torchrl_silp.baselines import prm_demonstration_batches, prm_demonstration_stats  # noqa: E402
-from torchrl_silp.data import transition_keys  # noqa: E402
-from torchrl_silp.eval import episode_outcomes, evaluate  # noqa: E402
-from torchrl_silp.models.base import as_model  # noqa: E402
+from torchrl_silp.baselines import prm_demonstration_batches, prm_demonstration_stats
+from torchrl_silp.data import transition_keys
+from torchrl_silp.eval import episode_outcomes, evaluate
+from torchrl_silp.models.base import as_model
+from torchrl_silp.recipes import schema
+from torchrl_silp.recipes.builders import (
+    make_actor_critic, make_env, make_model, make_observation_transform, observation_keys,
+)
+from torchrl_silp.recipes.checkpointing import checkpoint_exists, load_trained_networks
+from torchrl_silp.recipes.metrics import write_results
+from torchrl_silp.recipes.start import start_run
 
 schema.register()
 
@@ -91,7 +93,7 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"source_run_dir {str(src)!r} is not a directory")
     if not (src / "config.yaml").is_file():
         raise ValueError(f"source_run_dir {str(src)!r} holds no config.yaml (the run's resolved config)")
-    if not utils.checkpoint_exists(src / "checkpoint"):
+    if not checkpoint_exists(src / "checkpoint"):
         raise ValueError(f"source_run_dir {str(src)!r} holds no checkpoint (expected checkpoint/state.pt)")
     trained_on = OmegaConf.select(OmegaConf.load(src / "config.yaml"), "env.name", default=None)
     if trained_on != cfg.env.name:
@@ -104,13 +106,13 @@ def load_source_policy(run_dir: Path, model, device) -> tuple[torch.nn.Module, C
     """A finished training run's evaluated actor (the averaged one if the run kept it) and what builds its inputs.
 
     The actor is rebuilt from the run's ``config.yaml`` and loaded from its checkpoint;
-    the transform is the run's ``utils.make_observation_transform`` on ``model``.
+    the transform is the run's ``make_observation_transform`` on ``model``.
     """
     run_dir = Path(run_dir)
     source_cfg = OmegaConf.load(run_dir / "config.yaml")
-    env = utils.make_env(source_cfg, model, device, seed=0)  # only its specs: no task is drawn from it
-    actor, _, _ = utils.load_trained_networks(source_cfg, model, env, run_dir / "checkpoint", device)
-    return actor, utils.make_observation_transform(source_cfg, model)
+    env = make_env(source_cfg, model, device, seed=0)  # only its specs: no task is drawn from it
+    actor, _, _ = load_trained_networks(source_cfg, model, env, run_dir / "checkpoint", device)
+    return actor, make_observation_transform(source_cfg, model)
 
 
 def collect_policy_demonstrations(
@@ -245,8 +247,8 @@ def demonstration_batches(
 ) -> Iterator[tuple[TensorDictBase, dict]]:
     """The demonstrations of ``cfg.source``, batch by batch from ``start_episode``: ``(demos, batch_stats)``."""
     common = dict(start_episode=start_episode, seed=cfg.seed, max_steps=cfg.env.max_steps, device=device,
-                  progress=cfg.progress, observation_transform=utils.make_observation_transform(cfg, model),
-                  observation_keys=utils.observation_keys(cfg))
+                  progress=cfg.progress, observation_transform=make_observation_transform(cfg, model),
+                  observation_keys=observation_keys(cfg))
     if cfg.source == "policy":
         policy, policy_transform = load_source_policy(Path(cfg.source_run_dir), model, device)
         return policy_demonstration_batches(policy, model, cfg.n_demos, policy_transform=policy_transform, **common)
@@ -266,7 +268,7 @@ def _collection_settings(cfg: DictConfig) -> dict:
     out = {"source": cfg.source, "n_demos": cfg.n_demos, "seed": cfg.seed,
            "env": {"name": cfg.env.name, "max_steps": cfg.env.max_steps,
                    "model": OmegaConf.to_container(cfg.env.model, resolve=True)},
-           "observation_keys": list(utils.observation_keys(cfg))}
+           "observation_keys": list(observation_keys(cfg))}
     if cfg.source == "policy":
         out["source_run_dir"] = str(Path(cfg.source_run_dir).resolve())
     else:
@@ -333,14 +335,14 @@ def demonstrations(cfg: DictConfig, model, run_dir: Path, device) -> dict:
 # ----------------------------------------------------------------- BC policy
 def make_bc_actor(cfg: DictConfig, model, device) -> torch.nn.Module:
     """The BC policy: the recipes' deterministic tanh actor (that of DDPG/TD3) on ``cfg.network``,
-    reading ``utils.observation_keys(cfg)``."""
+    reading ``observation_keys(cfg)``."""
     net_cfg = OmegaConf.create({
         "algorithm": "ddpg",
         "network": {"hidden_sizes": list(cfg.network.hidden_sizes), "goal_relative": bool(cfg.network.goal_relative),
                     "next_tcp_feature": False},
     })
-    env = utils.make_env(cfg, model, device, seed=0)  # specs only
-    actor, _ = utils.make_actor_critic(net_cfg, model, env, device)  # the Q-network is left unused
+    env = make_env(cfg, model, device, seed=0)  # specs only
+    actor, _ = make_actor_critic(net_cfg, model, env, device)  # the Q-network is left unused
     return actor
 
 
@@ -355,14 +357,14 @@ def make_bc_loss(actor) -> BCLoss:
 def run(cfg: DictConfig) -> dict:
     """Collect (or load) the demonstrations, fit the BC policy, evaluate, checkpoint, report. Returns the summary."""
     check_config(cfg)
-    device, run_dir = utils.start_run(cfg)
+    device, run_dir = start_run(cfg)
     ckpt = run_dir / "checkpoint" / "state.pt"
     # everything the library checks is built before the demonstrations are collected
-    model = utils.make_model(cfg, device)
+    model = make_model(cfg, device)
     actor = make_bc_actor(cfg, model, device)
     loss = make_bc_loss(actor)
     optimizer = optim.Adam(loss.parameters(), lr=cfg.optim.lr)
-    keys = utils.observation_keys(cfg)
+    keys = observation_keys(cfg)
 
     cache = demonstrations(cfg, model, run_dir, device)
     demos, stats, collection_wall_s = cache["demos"], cache["stats"], cache["collection_wall_s"]
@@ -390,7 +392,7 @@ def run(cfg: DictConfig) -> dict:
 
     def tested(seed: int) -> dict:
         return evaluate(actor, n_tasks=cfg.eval.n_tasks, seed=seed, model=model,
-                        observation_transform=utils.make_observation_transform(cfg, model),
+                        observation_transform=make_observation_transform(cfg, model),
                         max_steps=cfg.env.max_steps, device=device)
 
     def record(bc_loss: float | None) -> dict:
@@ -456,7 +458,7 @@ def run(cfg: DictConfig) -> dict:
         "episodes": 0,  # BC never interacts with the training env
         "frames": 0,
     }
-    utils.write_results(run_dir, summary, history)
+    write_results(run_dir, summary, history)
     return summary
 
 

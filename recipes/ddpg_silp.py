@@ -3,13 +3,9 @@
     python recipes/ddpg_silp.py
 """
 
-import sys
-from pathlib import Path
-
 import hydra
 
-sys.path.insert(0, str(Path(__file__).parent))
-from sac_silp import train  # noqa: E402
+from torchrl_silp.recipes.sac_silp import train
 
 
 @hydra.main(version_base="1.3", config_path="config", config_name="ddpg_silp")

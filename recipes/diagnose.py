@@ -41,22 +41,18 @@ import sys
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-sys.path.insert(0, str(Path(__file__).parent))
-import schema  # noqa: E402
-import utils  # noqa: E402
-
-from torchrl_silp import CollisionHandling, ReachEnv  # noqa: E402
-from torchrl_silp.data import FilledStorageCheckpointer  # noqa: E402
-from torchrl_silp.eval import DEFAULT_TEST_SEED, episode_outcomes, evaluate  # noqa: E402
-from torchrl_silp.models import UR5eReach  # noqa: E402
-
-schema.register()
+from torchrl_silp import CollisionHandling, ReachEnv
+from torchrl_silp.data import FilledStorageCheckpointer
+from torchrl_silp.eval import DEFAULT_TEST_SEED, episode_outcomes, evaluate
+from torchrl_silp.models import UR5eReach
+from torchrl_silp.recipes.builders import make_env, make_model, make_observation_transform, rl_loss_of
+from torchrl_silp.recipes.checkpointing import load_trained_networks
+from torchrl_silp.recipes.schema import load_config
 
 CHUNK = 16384  # (state, candidate action) pairs per model step / critic call
 MAX_ACTION_SEARCH = 200  # time-outs whose final state gets the one-action search
@@ -111,27 +107,26 @@ def main(argv: list[str]) -> None:
     ckpt = run_dir / "checkpoint"
     if not (ckpt / "state.pt").exists():
         raise FileNotFoundError(f"no checkpoint under {run_dir} (expected {ckpt / 'state.pt'})")
-    with initialize_config_dir(config_dir=str(Path(__file__).parent / "config"), version_base="1.3"):
-        cfg = compose(config_name="sac_silp", overrides=overrides)
+    cfg = load_config("sac_silp", overrides)
     device = torch.device("cpu")
-    model = utils.make_model(cfg, device)
-    env = utils.make_env(cfg, model, device, seed=0)  # specs only
+    model = make_model(cfg, device)
+    env = make_env(cfg, model, device, seed=0)  # specs only
     # the actor the run evaluated (the averaged one under eval.actor_average_decay): diagnose that policy
-    actor, loss, state = utils.load_trained_networks(cfg, model, env, ckpt, device)
-    rl = utils.rl_loss_of(loss)
+    actor, loss, state = load_trained_networks(cfg, model, env, ckpt, device)
+    rl = rl_loss_of(loss)
     if state.get("averaged_actor") is not None:
         print("policy: the averaged actor the run evaluated (eval.actor_average_decay)")
     cfg_key, ag_key, dg_key = model.config_key, model.achieved_goal_key, model.desired_goal_key
 
     def inputs(states: TensorDictBase) -> TensorDictBase:
         """The networks' inputs at named states (the run's observation transforms)."""
-        return utils.make_observation_transform(cfg, model)(states.select(*model.state_keys).clone(False))
+        return make_observation_transform(cfg, model)(states.select(*model.state_keys).clone(False))
 
     def test_tasks() -> TransformedEnv:
         # a fresh env per rollout: each first reset draws the same 1000 tasks from the seed
         return TransformedEnv(
             ReachEnv(model, num_envs=1000, seed=DEFAULT_TEST_SEED, max_steps=cfg.env.max_steps, device=device),
-            Compose(CollisionHandling(0), utils.make_observation_transform(cfg, model)),
+            Compose(CollisionHandling(0), make_observation_transform(cfg, model)),
         )
 
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():

@@ -17,17 +17,13 @@ in-process. Configuration: ``recipes/config/prm.yaml``. Needs OMPL
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import hydra
 from omegaconf import DictConfig
 
-sys.path.insert(0, str(Path(__file__).parent))
-from utils import check_device, start_run, write_results  # noqa: E402
-
-from torchrl_silp.baselines import evaluate_prm  # noqa: E402
-from torchrl_silp.models import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach  # noqa: E402
+from torchrl_silp.baselines import evaluate_prm
+from torchrl_silp.models import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach
+from torchrl_silp.recipes.metrics import write_results
+from torchrl_silp.recipes.start import check_device, start_run
 
 
 def _check_choice(name: str, value, allowed) -> None:

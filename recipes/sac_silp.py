@@ -5,16 +5,15 @@
     python recipes/sac_silp.py seed=1 resume=true   # continue a killed run
     python recipes/sac_silp.py method=sac           # plain SAC (see config/method/)
 
-Builders live in ``recipes/utils.py``, the typed config in ``recipes/schema.py``
-and ``recipes/config/``; the method in the package.
+The loop is here; the builders live in ``builders.py`` (the gradient step in ``update.py``,
+checkpoints in ``checkpointing.py``, what a run logs and leaves in ``metrics.py``), the typed
+config in ``schema.py`` and ``config/``; the method in the package.
 """
 
 from __future__ import annotations
 
-import sys
 import time
 import warnings
-from pathlib import Path
 
 import hydra
 import torch
@@ -23,15 +22,22 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl._utils import timeit
 from torchrl.record.loggers import get_logger
 
-sys.path.insert(0, str(Path(__file__).parent))
-import schema  # noqa: E402
-import utils  # noqa: E402
-
-from torchrl_silp.data import EpisodeAssembler  # noqa: E402
-from torchrl_silp.eval import evaluate  # noqa: E402
-from torchrl_silp.models import UR5eReach  # noqa: E402
-from torchrl_silp.modules import make_averaged_actor  # noqa: E402
-from torchrl_silp.viz import save_rollout_png  # noqa: E402
+from torchrl_silp.data import EpisodeAssembler
+from torchrl_silp.eval import evaluate
+from torchrl_silp.models import UR5eReach
+from torchrl_silp.modules import make_averaged_actor
+from torchrl_silp.recipes import schema
+from torchrl_silp.recipes.builders import (
+    make_actor_critic, make_buffers, make_collector, make_env, make_exploration, make_loss, make_model,
+    make_observation_transform, make_optimizers, make_policy,
+)
+from torchrl_silp.recipes.checkpointing import StopRequest, checkpoint_exists, restore, save_checkpoint, training_state
+from torchrl_silp.recipes.metrics import (
+    batch_metrics, log_metrics, new_counters, plot_learning_curve, summarize, truncate_logs, write_results,
+)
+from torchrl_silp.recipes.start import start_run
+from torchrl_silp.recipes.update import compile_update, make_gradient_step
+from torchrl_silp.viz import save_rollout_png
 
 schema.register()
 
@@ -41,32 +47,32 @@ def train(cfg: DictConfig) -> dict:
     total_episodes = cfg.collector.total_episodes
     if total_episodes is not None and (isinstance(total_episodes, bool) or total_episodes < 1):
         raise ValueError(f"collector.total_episodes must be a positive number of episodes or null, got {total_episodes!r}")
-    device, run_dir = utils.start_run(cfg)
+    device, run_dir = start_run(cfg)
     ckpt_dir = run_dir / "checkpoint"
-    model = utils.make_model(cfg, device)
-    exploration = utils.make_exploration(cfg, model, device)
+    model = make_model(cfg, device)
+    exploration = make_exploration(cfg, model, device)
     primers = [exploration.make_tensordict_primer()] if exploration is not None else []
-    env = utils.make_env(cfg, model, device, seed=cfg.seed, primers=primers)
+    env = make_env(cfg, model, device, seed=cfg.seed, primers=primers)
     if cfg.collector.frames_per_batch % cfg.env.num_envs:
         raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
                          f"of env.num_envs ({cfg.env.num_envs})")
-    actor, critic = utils.make_actor_critic(cfg, model, env, device)
-    loss, updater = utils.make_loss(cfg, actor, critic, model, env)
-    optimizers = utils.make_optimizers(cfg, loss)
-    policy = utils.make_policy(cfg, actor, exploration, env, device)
-    buffers = utils.make_buffers(cfg, model, device)
+    actor, critic = make_actor_critic(cfg, model, env, device)
+    loss, updater = make_loss(cfg, actor, critic, model, env)
+    optimizers = make_optimizers(cfg, loss)
+    policy = make_policy(cfg, actor, exploration, env, device)
+    buffers = make_buffers(cfg, model, device)
     assembler = EpisodeAssembler()
     her, decay = cfg.replay_buffer.her, cfg.eval.actor_average_decay
     # the evaluated policy: the actor, or an average of its parameters over updates
     averaged = make_averaged_actor(actor, decay) if decay is not None else None
     evaluated = actor if averaged is None else averaged.module
 
-    resumed = cfg.resume and utils.checkpoint_exists(ckpt_dir)
-    counters, history, logger_state = utils.restore(ckpt_dir, cfg, loss, optimizers, averaged, buffers, assembler,
-                                                    env) if resumed else (utils.new_counters(), [], None)
+    resumed = cfg.resume and checkpoint_exists(ckpt_dir)
+    counters, history, logger_state = restore(ckpt_dir, cfg, loss, optimizers, averaged, buffers, assembler,
+                                              env) if resumed else (new_counters(), [], None)
 
     # the steps after the checkpoint are redone (all of them when starting afresh): no step logged twice
-    dropped = utils.truncate_logs(run_dir / "logs", counters["frames"])
+    dropped = truncate_logs(run_dir / "logs", counters["frames"])
     if dropped:
         print(f"dropped {dropped} log rows after frame {counters['frames']}: the run redoes those steps")
     logger = None
@@ -79,13 +85,13 @@ def train(cfg: DictConfig) -> dict:
     last_saved = [time.monotonic()]
 
     def checkpoint():
-        utils.save_checkpoint(ckpt_dir, utils.training_state(loss, optimizers, averaged, counters, history, assembler,
-                                                             logger, env), buffers)
+        save_checkpoint(ckpt_dir, training_state(loss, optimizers, averaged, counters, history, assembler,
+                                                 logger, env), buffers)
         last_saved[0] = time.monotonic()
 
     def run_evaluation(seed=cfg.eval.seed, return_rollout=False):
         kwargs = dict(n_tasks=cfg.eval.n_tasks, seed=seed, model=model, max_steps=cfg.env.max_steps,
-                      observation_transform=utils.make_observation_transform(cfg, model), device=device)
+                      observation_transform=make_observation_transform(cfg, model), device=device)
         metrics, rollout = evaluate(evaluated, return_rollout=True, **kwargs)
         if averaged is not None:
             metrics["online_success_rate"] = evaluate(actor, **kwargs)["success_rate"]
@@ -106,12 +112,12 @@ def train(cfg: DictConfig) -> dict:
     remaining = cfg.collector.total_frames - counters["frames"]
     if total_episodes is not None and counters["episodes"] >= total_episodes:
         remaining = 0
-    collector = utils.make_collector(cfg, env, policy, total_frames=max(remaining, cfg.collector.frames_per_batch),
-                                     init_random_frames=max(0, cfg.collector.init_random_frames - counters["frames"]),
-                                     device=device)
+    collector = make_collector(cfg, env, policy, total_frames=max(remaining, cfg.collector.frames_per_batch),
+                               init_random_frames=max(0, cfg.collector.init_random_frames - counters["frames"]),
+                               device=device)
     updates_per_batch = max(1, int(round(cfg.collector.frames_per_batch * cfg.optim.utd_ratio)))
 
-    gradient_step = utils.compile_update(cfg, utils.make_gradient_step(loss, optimizers, updater))
+    gradient_step = compile_update(cfg, make_gradient_step(loss, optimizers, updater))
 
     # frames (episodes, with an episode budget) on the bar; the updates and the phase beside it (the ETA is
     # tqdm's smoothed recent rate)
@@ -129,7 +135,7 @@ def train(cfg: DictConfig) -> dict:
 
     last_eval_frames = history[-1]["frames"] if history else 0
     tick = time.perf_counter()
-    with utils.StopRequest() as stop:
+    with StopRequest() as stop:
         for batch in (collector if remaining > 0 else []):
             counters["iterations"] += 1
             counters["frames"] += batch.numel()
@@ -158,7 +164,7 @@ def train(cfg: DictConfig) -> dict:
                             show(phase="training")
             counters["train_wall_s"] += time.perf_counter() - tick
             counters["planning_s"] = buffers.demo_buffer.planning_time
-            metrics = utils.batch_metrics(batch, losses, counters, len(buffers.demo_buffer))
+            metrics = batch_metrics(batch, losses, counters, len(buffers.demo_buffer))
             if losses and "bc_filter_fraction" in losses[0].keys():  # over the updates whose batch held demos
                 with_demos = torch.stack([td["num_demos"] for td in losses]) > 0
                 kept = torch.stack([td["bc_filter_fraction"] for td in losses])[with_demos]
@@ -170,7 +176,7 @@ def train(cfg: DictConfig) -> dict:
                     metrics.update({f"eval/{k}": v for k, v in run_evaluation().items()})
                 show(success=f"{metrics['eval/success_rate']:.3f}", demos=len(buffers.demo_buffer))
             metrics.update({f"time/{k}": v for k, v in timeit.todict(percall=False).items()})
-            utils.log_metrics(logger, metrics, counters["frames"])
+            log_metrics(logger, metrics, counters["frames"])
             pbar.update(batch.numel() if total_episodes is None else episodes_done)
             if (stop.requested or counters["iterations"] % cfg.checkpoint.every_iters == 0
                     or time.monotonic() - last_saved[0] >= cfg.checkpoint.every_s):
@@ -196,13 +202,13 @@ def train(cfg: DictConfig) -> dict:
         validation = history[-1] if history and history[-1]["frames"] == counters["frames"] else run_evaluation()
         final, rollout = run_evaluation(cfg.eval.test_seed, return_rollout=True)
     checkpoint()
-    summary = utils.summarize(cfg, counters, final, len(buffers.demo_buffer), validation)
+    summary = summarize(cfg, counters, final, len(buffers.demo_buffer), validation)
     if summary["warning"]:
         warnings.warn(summary["warning"])
-    utils.plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
+    plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
     if isinstance(model, UR5eReach):  # the pictures draw a UR5e
         save_rollout_png(model, rollout[:4], run_dir / "test_rollouts.png")
-    utils.write_results(run_dir, summary, history)
+    write_results(run_dir, summary, history)
     return summary
 
 

@@ -7,12 +7,19 @@ parameter. Every field is documented in ``config/sac_silp.yaml``.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Optional
 
+from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig
 
 from torchrl_silp.eval import DEFAULT_TEST_SEED, DEFAULT_VALIDATION_SEED
+
+CONFIG_DIR = Path(__file__).resolve().parent / "config"
 
 
 @dataclass
@@ -154,6 +161,30 @@ def register() -> None:
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
     ConfigStore.instance().store(name="bc_schema", node=BCConfig)
     ConfigStore.instance().store(name="transfer_schema", node=TransferConfig)
+
+
+@contextlib.contextmanager
+def config_context():
+    """Hydra's compose API over ``recipes/config`` with the schemas registered, inside ``@hydra.main``
+    (already set up: its primary config dir is ``recipes/config``) or not."""
+    register()
+    if GlobalHydra.instance().is_initialized():
+        yield
+    else:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            yield
+
+
+def load_config(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
+    """A recipe's config (``recipes/config/<config_name>.yaml``) with hydra overrides, as its script composes it.
+
+    Examples:
+        >>> cfg = load_config("sac_silp", ["env=panda_reach", "seed=3"])
+        >>> cfg.env.name, cfg.seed, cfg.algorithm
+        ('panda_reach', 3, 'sac')
+    """
+    with config_context():
+        return compose(config_name=config_name, overrides=list(overrides))
 
 
 # ------------------------------------------------------------------ recipes/bc.py

@@ -51,12 +51,12 @@ import traceback
 from pathlib import Path
 
 import hydra
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
+from hydra import compose
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from torchrl_silp.recipes.schema import CONFIG_DIR, config_context
+
 RECIPES = Path(__file__).resolve().parent
-CONFIG_DIR = RECIPES / "config"
 _has_ray = importlib.util.find_spec("ray") is not None
 _RAY_HINT = 'recipes/sweep.py runs its grid on Ray, which is not installed: pip install "torchrl_silp[sweep]"'
 # results_dir is spliced into hydra overrides: a plain path (no spaces, quotes, commas or "=")
@@ -72,7 +72,7 @@ class Run:
     seed: int
     recipe: str
     config: str      # the hydra config name in recipes/config
-    function: str    # "<module>.<function>" of recipes/<module>.py
+    function: str    # "<module>.<function>" of recipes/<module>.py (torchrl_silp.recipes.<module>)
     overrides: tuple[str, ...]
     run_dir: Path
     after: str | None = None
@@ -88,20 +88,6 @@ class Run:
 
 
 # ------------------------------------------------------------------ config
-@contextlib.contextmanager
-def config_context():
-    """Hydra's compose API over ``recipes/config``, inside ``@hydra.main`` (already set up) or not."""
-    if str(RECIPES) not in sys.path:
-        sys.path.insert(0, str(RECIPES))
-    importlib.import_module("schema").register()  # the recipes' structured configs
-    if GlobalHydra.instance().is_initialized():
-        # the sweep's own @hydra.main: its primary config dir is recipes/config
-        yield
-    else:
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            yield
-
-
 def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = "sweep") -> DictConfig:
     """A sweep's config (``recipes/config/<config_name>.yaml``) with hydra overrides, outside ``@hydra.main``.
 
@@ -240,10 +226,9 @@ def _check_configs(runs: list[Run]) -> None:
 
 # ------------------------------------------------------------ one run (a Ray task)
 def _load_function(spec: str):
-    if str(RECIPES) not in sys.path:
-        sys.path.insert(0, str(RECIPES))
+    """The function ``"<module>.<function>"`` names: ``<function>`` of ``torchrl_silp.recipes.<module>``."""
     module, name = spec.split(".")
-    return getattr(importlib.import_module(module), name)
+    return getattr(importlib.import_module(f"torchrl_silp.recipes.{module}"), name)
 
 
 def _machine() -> dict:
@@ -425,9 +410,6 @@ def run_sweep(cfg: DictConfig, command: str | None = None) -> list[dict]:
             if cfg.ray.address is None:
                 raise ValueError(message)
             print(f"warning: {message} (unless the cluster scales up)")
-        if __name__ != "__main__":
-            # workers cannot import this module by name (recipes/ is not on their path): send it by value
-            ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
         context = (("sweep_command", command), ("results_dir", str(results_dir)),
                    ("resources_per_run", {"num_cpus": cfg.resources.num_cpus, "num_gpus": cfg.resources.num_gpus}),
                    ("ray_cluster", {k: available.get(k, 0) for k in ("CPU", "GPU")}))

@@ -15,7 +15,6 @@ scenario and noise level and writes them, with the config, to ``out``.
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -23,13 +22,13 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-sys.path.insert(0, str(Path(__file__).parent))
-import schema  # noqa: E402
-import utils  # noqa: E402
-
-from torchrl_silp.sim.pick_place import STAGES, pick_place_tasks, run_pick_place  # noqa: E402
-from torchrl_silp.sim.replan import ReplanningPRMPolicy  # noqa: E402
-from torchrl_silp.sim.transfer import NOISE_LEVELS, SCENARIOS, run_transfer, scenario_tasks  # noqa: E402
+from torchrl_silp.recipes import schema
+from torchrl_silp.recipes.builders import make_env, make_model, make_observation_transform
+from torchrl_silp.recipes.checkpointing import load_trained_networks
+from torchrl_silp.recipes.start import check_device
+from torchrl_silp.sim.pick_place import STAGES, pick_place_tasks, run_pick_place
+from torchrl_silp.sim.replan import ReplanningPRMPolicy
+from torchrl_silp.sim.transfer import NOISE_LEVELS, SCENARIOS, run_transfer, scenario_tasks
 
 PICK_PLACE = "pick_place"
 
@@ -54,7 +53,7 @@ def run(cfg: DictConfig) -> dict:
     if (cfg.checkpoint is None) == (cfg.prm_budget_s is None):
         raise ValueError("give one of checkpoint (a trained policy) and prm_budget_s (OMPL's PRM, replanned each "
                          f"control step), got checkpoint={cfg.checkpoint!r}, prm_budget_s={cfg.prm_budget_s!r}")
-    utils.check_device(cfg.device)
+    check_device(cfg.device)
     device = torch.device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -62,19 +61,19 @@ def run(cfg: DictConfig) -> dict:
         if not (isinstance(cfg.prm_budget_s, (int, float)) and cfg.prm_budget_s > 0):
             raise ValueError(f"prm_budget_s must be a positive number of seconds, got {cfg.prm_budget_s!r}")
         run_dir = None
-        train_cfg = OmegaConf.create({"env": OmegaConf.load(Path(__file__).parent / "config" / "env" / "ur5e_reach.yaml"),
+        train_cfg = OmegaConf.create({"env": OmegaConf.load(schema.CONFIG_DIR / "env" / "ur5e_reach.yaml"),
                                       "logger": {"exp_name": f"prm_{cfg.prm_budget_s:g}_replanned"}, "seed": cfg.seed})
-        model = utils.make_model(train_cfg, device)
+        model = make_model(train_cfg, device)
         actor, transform, state = None, None, {"counters": {"frames": 0, "episodes": 0}}
     else:
         run_dir = Path(cfg.checkpoint)
         if not (run_dir / "config.yaml").exists():
             raise FileNotFoundError(f"checkpoint: {run_dir} holds no config.yaml (give a training run's directory)")
         train_cfg = OmegaConf.load(run_dir / "config.yaml")
-        model = utils.make_model(train_cfg, device)
-        env = utils.make_env(train_cfg, model, device, seed=0)
-        actor, _, state = utils.load_trained_networks(train_cfg, model, env, run_dir / "checkpoint", device)
-        transform = utils.make_observation_transform(train_cfg, model)
+        model = make_model(train_cfg, device)
+        env = make_env(train_cfg, model, device, seed=0)
+        actor, _, state = load_trained_networks(train_cfg, model, env, run_dir / "checkpoint", device)
+        transform = make_observation_transform(train_cfg, model)
     max_steps = cfg.max_steps if cfg.max_steps is not None else int(train_cfg.env.max_steps)
     rows = []
     print(f"{'scenario':<8} {'noise':<7} {'success':>8} {'collision':>10} {'steps':>6} {'time to success (s)':>20} "

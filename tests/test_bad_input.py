@@ -2,12 +2,8 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from torch import nn
 from torchrl.modules import MLP, Actor, ValueOperator
@@ -17,7 +13,6 @@ from torchrl_silp import ReachEnv, SILPLoss, UR5eReach, UR5eReachEnv, evaluate
 from torchrl_silp.data import DemoReplayBuffer, MixedReplay
 from torchrl_silp.geometry import aabb_from_center
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 MODEL = UR5eReach()
 TASKS = MODEL.sample_tasks(4, torch.Generator().manual_seed(0))
 STATE = TASKS.select(*MODEL.state_keys)
@@ -88,33 +83,29 @@ def test_library_entry_points_reject_bad_input(entry, call, exc, words):
     assert words in str(err.value), f"{entry}: {err.value}"
 
 
-def _train(tmp_path, *overrides):
-    sys.path.insert(0, str(RECIPES))
-    import sac_silp
+def _train(tiny_config, *overrides):
+    from torchrl_silp.recipes import sac_silp
 
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        cfg = compose(config_name="sac_silp", overrides=["env.num_envs=4", "collector.frames_per_batch=100",
-                                                         "progress=false", "logger.backend=", "compile.compile=false", *overrides])
-    return sac_silp.train(cfg)
+    return sac_silp.train(tiny_config(*overrides))
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the case is a machine without CUDA")
-def test_recipe_refuses_cuda_without_a_gpu(tmp_path):
+def test_recipe_refuses_cuda_without_a_gpu(tmp_path, tiny_config):
     with pytest.raises(ValueError, match="device"):
-        _train(tmp_path, f"run_dir={tmp_path / 'run'}", "device=cuda")
+        _train(tiny_config, "device=cuda")
     assert not (tmp_path / "run").exists()
 
 
-def test_recipe_refuses_a_run_dir_that_is_a_file(tmp_path):
+def test_recipe_refuses_a_run_dir_that_is_a_file(tmp_path, tiny_config):
     path = tmp_path / "a_file"
     path.write_text("")
     with pytest.raises(ValueError, match="run_dir"):
-        _train(tmp_path, f"run_dir={path}")
+        _train(tiny_config, f"run_dir={path}")
 
 
-def test_recipe_refuses_a_non_integer_seed(tmp_path):
+def test_recipe_refuses_a_non_integer_seed(tiny_config):
     with pytest.raises(ConfigCompositionException) as err:
-        _train(tmp_path, f"run_dir={tmp_path / 'run'}", "seed=abc")
+        _train(tiny_config, "seed=abc")
     assert "seed" in f"{err.value} {err.value.__cause__}"
 
 

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, ValidationError
@@ -22,21 +21,12 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from torchrl_silp import CollisionHandling, ReachEnv
 from torchrl_silp.data import transition_keys
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
-import bc  # noqa: E402  (registers the BC schema)
-import schema  # noqa: E402
-import utils  # noqa: E402
+from torchrl_silp.recipes import bc, builders
+from torchrl_silp.recipes.schema import load_config
 
-schema.register()  # the training recipes' schema, for the source run's config
-
+RECIPES = Path(bc.__file__).parent
 CPU = torch.device("cpu")
 HAS_OMPL = importlib.util.find_spec("ompl") is not None
-
-
-def compose_config(name: str, overrides: list[str]):
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        return compose(config_name=name, overrides=overrides)
 
 
 def greedy_expert(model):
@@ -63,7 +53,7 @@ def greedy_expert(model):
 def source_env(model, source_cfg, n: int, seed: int) -> TransformedEnv:
     """The env the source policy is rolled out in: collision type 0, its own input transforms."""
     return TransformedEnv(ReachEnv(model, num_envs=n, seed=seed),
-                          Compose(CollisionHandling(0), utils.make_observation_transform(source_cfg, model)))
+                          Compose(CollisionHandling(0), builders.make_observation_transform(source_cfg, model)))
 
 
 @pytest.fixture(scope="module")
@@ -74,17 +64,17 @@ def source_run(tmp_path_factory):
     """
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("source_run")
-    cfg = compose_config("sac_silp", ["env.num_envs=4", "network.hidden_sizes=[64,64]", f"run_dir={root}"])
-    model = utils.make_model(cfg, CPU)
-    env = utils.make_env(cfg, model, CPU, seed=0)
+    cfg = load_config("sac_silp", ["env.num_envs=4", "network.hidden_sizes=[64,64]", f"run_dir={root}"])
+    model = builders.make_model(cfg, CPU)
+    env = builders.make_env(cfg, model, CPU, seed=0)
     torch.manual_seed(0)
-    actor, critic = utils.make_actor_critic(cfg, model, env, CPU)
-    loss, _ = utils.make_loss(cfg, actor, critic, model, env)
+    actor, critic = builders.make_actor_critic(cfg, model, env, CPU)
+    loss, _ = builders.make_loss(cfg, actor, critic, model, env)
     online = copy.deepcopy(loss.state_dict())
     # the expert's states and actions, then the actor's deterministic action fitted to them
     with torch.no_grad():
         data = source_env(model, cfg, 200, 123).rollout(50, greedy_expert(model), break_when_any_done=False)
-    keys = utils.observation_keys(cfg)
+    keys = builders.observation_keys(cfg)
     inputs, act = data.select(*keys).reshape(-1), data["action"].reshape(-1, 3)
     opt = torch.optim.Adam(actor.parameters(), lr=3e-3)
     gen = torch.Generator().manual_seed(0)
@@ -107,7 +97,7 @@ def source_run(tmp_path_factory):
 def test_policy_demonstrations_are_the_successful_episodes(source_run, monkeypatch):
     root, expert, source_cfg = source_run
     monkeypatch.setattr(bc, "COLLECT_BATCH", 64)  # 150 tasks in batches of 64: the last one is cut
-    model = utils.make_model(source_cfg, CPU)
+    model = builders.make_model(source_cfg, CPU)
     policy, policy_transform = bc.load_source_policy(root, model, CPU)
     assert policy.in_keys == ["observation", "goal_offset"]
     # the demonstrations keep what the learner reads (here the flat observation only), not what the source read
@@ -168,7 +158,7 @@ BC_TINY = [
 def bc_run(source_run, tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("bc") / "run"
     overrides = [*BC_TINY, f"source_run_dir={source_run[0]}", f"run_dir={run_dir}"]
-    cfg = compose_config("bc", overrides)
+    cfg = load_config("bc", overrides)
     return cfg, overrides, bc.run(cfg)
 
 
@@ -181,9 +171,9 @@ def test_bc_run_writes_a_consistent_summary(bc_run):
     assert summary["episodes"] == 0 and summary["frames"] == 0 and summary["updates"] == 300
     cache = torch.load(run_dir / "demos.pt", weights_only=False)
     demos = cache["demos"]
-    model = utils.make_model(cfg, CPU)
+    model = builders.make_model(cfg, CPU)
     # the demonstrations hold what the BC actor reads: the observation and the goal offset
-    assert set(demos.keys(True, True)) == {*transition_keys(model, utils.observation_keys(cfg)), "is_demo", "episode"}
+    assert set(demos.keys(True, True)) == {*transition_keys(model, builders.observation_keys(cfg)), "is_demo", "episode"}
     torch.testing.assert_close(demos["goal_offset"], demos["desired_goal"] - demos["achieved_goal"])
     assert summary["n_demos_attempted"] == 100
     assert 0 < summary["n_demos_kept"] == demos["episode"].unique().numel() < 100
@@ -200,11 +190,11 @@ def test_bc_run_writes_a_consistent_summary(bc_run):
 
     # the reported success rate is that of the checkpointed BC network on the same test tasks
     actor = bc.make_bc_actor(cfg, model, CPU)
-    assert actor.in_keys == utils.observation_keys(cfg)
+    assert actor.in_keys == builders.observation_keys(cfg)
     state = torch.load(run_dir / "checkpoint" / "state.pt", weights_only=False)
     bc.make_bc_loss(actor).load_state_dict(state["loss"])
     again = bc.evaluate(actor, n_tasks=50, seed=cfg.eval.test_seed, model=model,
-                        observation_transform=utils.make_observation_transform(cfg, model))
+                        observation_transform=builders.make_observation_transform(cfg, model))
     assert again["success_rate"] == summary["success_rate"]
     assert again["collision_rate"] == summary["test_collision_rate"]
 
@@ -213,12 +203,12 @@ def test_bc_fits_the_demonstrated_actions(bc_run):
     cfg, _, _ = bc_run
     run_dir = Path(cfg.run_dir)
     demos = torch.load(run_dir / "demos.pt", weights_only=False)["demos"]
-    model = utils.make_model(cfg, CPU)
+    model = builders.make_model(cfg, CPU)
     torch.manual_seed(cfg.seed)  # the run's initial network
     untrained = bc.make_bc_actor(cfg, model, CPU)
     trained = bc.make_bc_actor(cfg, model, CPU)
     bc.make_bc_loss(trained).load_state_dict(torch.load(run_dir / "checkpoint" / "state.pt", weights_only=False)["loss"])
-    inputs = demos.select(*utils.observation_keys(cfg))
+    inputs = demos.select(*builders.observation_keys(cfg))
     with torch.no_grad():
         mse = {name: (net(inputs.clone())["action"] - demos["action"]).pow(2).mean().item()
                for name, net in (("untrained", untrained), ("trained", trained))}
@@ -240,10 +230,10 @@ def test_resume_after_completion_does_not_collect_again(bc_run):
     assert len(json.loads((run_dir / "history.json").read_text())["history"]) == 2
     # resuming with other collection settings than the cache's is refused
     with pytest.raises(ValueError, match="n_demos"):
-        bc.run(compose_config("bc", [*overrides, "resume=true", "n_demos=101"]))
+        bc.run(load_config("bc", [*overrides, "resume=true", "n_demos=101"]))
     # so is resuming with other network inputs than the checkpointed run's (the field is named)
     with pytest.raises(ValueError, match="resume: network is"):
-        bc.run(compose_config("bc", [*overrides, "resume=true", "network.goal_relative=false"]))
+        bc.run(load_config("bc", [*overrides, "resume=true", "network.goal_relative=false"]))
 
 
 class Killed(Exception):
@@ -270,9 +260,9 @@ def test_a_run_killed_during_collection_resumes_at_its_next_batch(source_run, tm
         return batches
 
     def config(run_dir: Path, *more: str):
-        return compose_config("bc", [*BC_TINY, f"source_run_dir={root}", f"run_dir={run_dir}", *more])
+        return load_config("bc", [*BC_TINY, f"source_run_dir={root}", f"run_dir={run_dir}", *more])
 
-    model = utils.make_model(config(tmp_path), CPU)
+    model = builders.make_model(config(tmp_path), CPU)
     whole_dir, cut_dir = tmp_path / "whole", tmp_path / "cut"
     whole_dir.mkdir(), cut_dir.mkdir()
     whole = bc.demonstrations(config(whole_dir), model, whole_dir, CPU)
@@ -317,14 +307,14 @@ def test_a_run_killed_during_collection_resumes_at_its_next_batch(source_run, tm
 def test_wrong_types_are_rejected_by_the_schema(override):
     # hydra wraps the schema's error of a command-line override in a ConfigCompositionException
     with pytest.raises(ConfigCompositionException) as err:
-        compose_config("bc", [override])
+        load_config("bc", [override])
     assert isinstance(err.value.__cause__, ValidationError)
     assert override.split("=")[0].split(".")[-1] in str(err.value.__cause__)
 
 
 def test_unknown_fields_are_rejected_by_the_schema():
     with pytest.raises(ConfigCompositionException) as err:
-        compose_config("bc", ["optim.learning_rate=0.1"])
+        load_config("bc", ["optim.learning_rate=0.1"])
     assert isinstance(err.value.__cause__, (ConfigKeyError, ConfigAttributeError))
     assert "learning_rate" in str(err.value.__cause__)
 
@@ -370,7 +360,7 @@ def test_bad_config_is_rejected_before_work(tmp_path, source_run, override, name
         override = ["source=prm", override]
     run_dir = tmp_path / "run"
     overrides = [f"source_run_dir={source_run[0]}", f"run_dir={run_dir}", "progress=false"]
-    cfg = compose_config("bc", [*overrides, *(override if isinstance(override, list) else [override])])
+    cfg = load_config("bc", [*overrides, *(override if isinstance(override, list) else [override])])
     with pytest.raises((ValueError, TypeError)) as err:
         bc.run(cfg)
     assert name in str(err.value)
@@ -385,20 +375,20 @@ def test_a_source_without_successes_stops_the_run(tmp_path, source_run):
     state = torch.load(source_run[0] / "checkpoint" / "state.pt", weights_only=False)
     state["averaged_actor"] = None
     torch.save(state, src / "checkpoint" / "state.pt")
-    cfg = compose_config("bc", [*BC_TINY, "n_demos=20", f"source_run_dir={src}", f"run_dir={tmp_path / 'run'}"])
+    cfg = load_config("bc", [*BC_TINY, "n_demos=20", f"source_run_dir={src}", f"run_dir={tmp_path / 'run'}"])
     with pytest.raises(RuntimeError, match="none of the 20 demonstration episodes succeeded"):
         bc.run(cfg)
 
 
 @pytest.mark.skipif(not HAS_OMPL, reason="OMPL is not installed")
 def test_prm_source_end_to_end(tmp_path):
-    cfg = compose_config("bc", ["source=prm", "n_demos=4", "prm_budget_s=1.0", "optim.n_updates=20",
+    cfg = load_config("bc", ["source=prm", "n_demos=4", "prm_budget_s=1.0", "optim.n_updates=20",
                                 "eval.every_updates=20", "eval.n_tasks=10", "network.hidden_sizes=[16]",
                                 "progress=false", "threads=1", f"run_dir={tmp_path / 'run'}"])
     summary = bc.run(cfg)
     demos = torch.load(tmp_path / "run" / "demos.pt", weights_only=False)["demos"]
-    model = utils.make_model(cfg, CPU)
-    assert set(demos.keys(True, True)) >= {*transition_keys(model, utils.observation_keys(cfg)), "episode"}
+    model = builders.make_model(cfg, CPU)
+    assert set(demos.keys(True, True)) >= {*transition_keys(model, builders.observation_keys(cfg)), "episode"}
     assert summary["source"] == "prm" and summary["n_demos_attempted"] == 4
     assert 0 < summary["n_demos_kept"] == demos["episode"].unique().numel() <= 4
     assert summary["n_transitions"] == demos.shape[0]

@@ -1,17 +1,22 @@
 """The benchmarks' own arithmetic (their figures are printed, never asserted on timings)."""
 
-import sys
 import time
-from pathlib import Path
 
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
-import update_step  # noqa: E402
+
+@pytest.fixture(scope="module")
+def update_step(load_benchmark):
+    return load_benchmark("update_step")
 
 
-def test_split_time_puts_each_profiled_event_in_its_part_and_leaves_the_rest_unaccounted():
+@pytest.fixture(scope="module")
+def timing(load_benchmark):
+    return load_benchmark("timing")
+
+
+def test_split_time_puts_each_profiled_event_in_its_part_and_leaves_the_rest_unaccounted(update_step):
     self_us = {  # summed over 4 calls
         "aten::mm": 400.0, "aten::bmm": 800.0, "aten::addmm": 200.0,
         "## Call CompiledFxGraph fabc123 (path)": 600.0,
@@ -28,12 +33,12 @@ def test_split_time_puts_each_profiled_event_in_its_part_and_leaves_the_rest_una
     })
 
 
-def test_a_fused_adam_step_counts_as_the_optimiser_not_as_other_aten():
+def test_a_fused_adam_step_counts_as_the_optimiser_not_as_other_aten(update_step):
     parts = update_step.split_time({"aten::_fused_adam_": 100.0, "aten::lerp_": 50.0}, 1000.0, 1)
     assert parts["optimiser steps"] == pytest.approx(0.1) and parts["other ATen"] == pytest.approx(0.05)
 
 
-def test_profile_on_a_device_other_than_the_cpu_is_refused_before_anything_is_built(monkeypatch, capsys):
+def test_profile_on_a_device_other_than_the_cpu_is_refused_before_anything_is_built(monkeypatch, capsys, update_step):
     monkeypatch.setattr(update_step, "resolve_device", lambda cfg: torch.device("cuda"))
 
     def build(*args, **kwargs):
@@ -45,18 +50,18 @@ def test_profile_on_a_device_other_than_the_cpu_is_refused_before_anything_is_bu
     assert "--profile splits the update's CPU time; device=cuda" in capsys.readouterr().err
 
 
-def test_a_negative_profile_count_is_refused(capsys):
+def test_a_negative_profile_count_is_refused(capsys, update_step):
     with pytest.raises(SystemExit):
         update_step.main(["--profile", "-3"])
     assert "--profile must be a number of updates >= 0" in capsys.readouterr().err
 
 
-def test_the_benchmark_refuses_a_cuda_graph_off_cuda_as_the_recipe_does():
+def test_the_benchmark_refuses_a_cuda_graph_off_cuda_as_the_recipe_does(update_step):
     with pytest.raises(ValueError, match="compile.cudagraphs captures the update in a CUDA graph: it needs device=cuda"):
         update_step.main(["compile.cudagraphs=true", "silp.demo_rows=mask", "device=cpu"])
 
 
-def test_the_update_is_timed_on_copies_of_the_batch_so_a_loss_writing_into_it_compiles_one_graph():
+def test_the_update_is_timed_on_copies_of_the_batch_so_a_loss_writing_into_it_compiles_one_graph(update_step):
     from tensordict import TensorDict
 
     def loss(td):  # a loss that writes its output into the batch it reads, as TorchRL's do
@@ -77,9 +82,7 @@ def test_the_update_is_timed_on_copies_of_the_batch_so_a_loss_writing_into_it_co
     torch._dynamo.reset()
 
 
-def test_interleaved_timing_takes_turns_and_times_each_call_on_its_own():
-    import timing
-
+def test_interleaved_timing_takes_turns_and_times_each_call_on_its_own(timing):
     calls = []
     fns = {"fast": lambda: calls.append("fast"), "slow": lambda: (calls.append("slow"), time.sleep(0.002))}
     medians = timing.interleaved_median_ms(fns, rounds=3, per_round=2)
@@ -88,7 +91,7 @@ def test_interleaved_timing_takes_turns_and_times_each_call_on_its_own():
     assert medians["slow"] >= 2.0 > medians["fast"]
 
 
-def test_against_is_refused_without_compilation_and_a_bad_peer_override_before_anything_is_built(monkeypatch, capsys):
+def test_against_is_refused_without_compilation_and_a_bad_peer_override_before_anything_is_built(monkeypatch, capsys, update_step):
     with pytest.raises(SystemExit):
         update_step.main(["--no-compile", "--against", "compile.guards=all"])
     assert "--against times two compiled updates; --no-compile has none" in capsys.readouterr().err

@@ -430,20 +430,20 @@ def test_a_start_episode_off_the_batches_is_refused_before_planning(model, monke
 
 # ------------------------------------------------------------ (d) arguments
 @pytest.mark.parametrize(
-    "kwargs,name",
+    "kwargs,name,error",
     [
-        ({"budget_s": 0}, "budget_s"),
-        ({"budget_s": -0.1}, "budget_s"),
-        ({"budget_s": float("nan")}, "budget_s"),
-        ({"budget_s": True}, "budget_s"),
-        ({"budget_s": 0.1, "edge_step": 0}, "edge_step"),
-        ({"budget_s": 0.1, "seed": -1}, "seed"),
-        ({"budget_s": 0.1, "seed": 1.5}, "seed"),
-        ({"budget_s": 0.1, "simplify": "yes"}, "simplify"),
+        ({"budget_s": 0}, "budget_s", ValueError),
+        ({"budget_s": -0.1}, "budget_s", ValueError),
+        ({"budget_s": float("nan")}, "budget_s", ValueError),
+        ({"budget_s": True}, "budget_s", TypeError),
+        ({"budget_s": 0.1, "edge_step": 0}, "edge_step", ValueError),
+        ({"budget_s": 0.1, "seed": -1}, "seed", ValueError),
+        ({"budget_s": 0.1, "seed": 1.5}, "seed", TypeError),
+        ({"budget_s": 0.1, "simplify": "yes"}, "simplify", TypeError),
     ],
 )
-def test_planner_rejects_bad_arguments(model, kwargs, name):
-    with pytest.raises(ValueError, match=name):
+def test_planner_rejects_bad_arguments(model, kwargs, name, error):
+    with pytest.raises(error, match=name):
         PRMPlanner(model, **kwargs)
 
 

@@ -2,33 +2,27 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
-from omegaconf import OmegaConf
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
-import sac_silp  # noqa: E402  (registers the structured schema)
-import utils  # noqa: E402
-
-from torchrl_silp.modules import NextGoalOffsetQ  # noqa: E402
+from torchrl_silp.modules import NextGoalOffsetQ
+from torchrl_silp.recipes import builders, checkpointing, metrics, sac_silp, start, update
+from torchrl_silp.recipes.schema import CONFIG_DIR, load_config
 
 
 def config(*overrides: str, name: str = "sac_silp"):
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        return compose(config_name=name, overrides=list(overrides))
+    return load_config(name, overrides)
 
 
 def test_critic_reads_the_goal_offset_and_the_model_next_goal():
     cfg = config("env.num_envs=4")
-    model = utils.make_model(cfg, torch.device("cpu"))
-    env = utils.make_env(cfg, model, torch.device("cpu"), seed=0)
-    actor, critic = utils.make_actor_critic(cfg, model, env, torch.device("cpu"))
+    model = builders.make_model(cfg, torch.device("cpu"))
+    env = builders.make_env(cfg, model, torch.device("cpu"), seed=0)
+    actor, critic = builders.make_actor_critic(cfg, model, env, torch.device("cpu"))
     assert isinstance(critic.module, NextGoalOffsetQ)
     assert critic.in_keys[:3] == ["observation", "goal_offset", "action"]
     assert set(model.state_keys) <= set(critic.in_keys)
@@ -38,22 +32,22 @@ def test_critic_reads_the_goal_offset_and_the_model_next_goal():
     # the model is no parameter of the critic
     assert all(name.startswith("mlp.") for name in critic.module.state_dict())
     plain = config("env.num_envs=4", "network.next_tcp_feature=false", "network.goal_relative=false")
-    _, critic = utils.make_actor_critic(plain, model, utils.make_env(plain, model, torch.device("cpu"), 0), "cpu")
+    _, critic = builders.make_actor_critic(plain, model, builders.make_env(plain, model, torch.device("cpu"), 0), "cpu")
     assert critic.in_keys == ["observation", "action"]
 
 
 def test_the_networks_are_stock_linear_and_relu_layers():
     cfg = config("env.num_envs=4")
-    model = utils.make_model(cfg, torch.device("cpu"))
-    env = utils.make_env(cfg, model, torch.device("cpu"), seed=0)
-    actor, critic = utils.make_actor_critic(cfg, model, env, torch.device("cpu"))
+    model = builders.make_model(cfg, torch.device("cpu"))
+    env = builders.make_env(cfg, model, torch.device("cpu"), seed=0)
+    actor, critic = builders.make_actor_critic(cfg, model, env, torch.device("cpu"))
     for net in (actor, critic):
         kinds = {type(m) for m in net.modules() if not list(m.children())}
         assert torch.nn.Linear in kinds and torch.nn.ReLU in kinds
         assert all(k.__module__.startswith(("torch.", "torchrl.", "tensordict.")) for k in kinds), kinds
 
 
-METHODS = sorted(p.stem for p in (RECIPES / "config" / "method").glob("*.yaml"))
+METHODS = sorted(p.stem for p in (CONFIG_DIR / "method").glob("*.yaml"))
 
 
 def test_every_table1_learning_method_is_a_config():
@@ -128,10 +122,6 @@ def test_wrong_types_and_unknown_fields_are_rejected_by_the_schema(override):
     assert override.split("=")[0] in message
 
 
-TINY = ["env.num_envs=4", "collector.frames_per_batch=100", "eval.n_tasks=8", "progress=false", "logger.backend=",
-        "compile.compile=false"]
-
-
 @pytest.mark.parametrize(
     "override,name",
     [
@@ -149,53 +139,53 @@ TINY = ["env.num_envs=4", "collector.frames_per_batch=100", "eval.n_tasks=8", "p
         ("env.model.task_branch=left", "task_branch"),
     ],
 )
-def test_bad_values_are_rejected_by_the_library_naming_the_parameter(tmp_path, override, name):
-    overrides = [*TINY, f"run_dir={tmp_path / 'run'}", override]
+def test_bad_values_are_rejected_by_the_library_naming_the_parameter(tmp_path, override, name, tiny_config):
+    overrides = [override]
     if "her_strategy" in override:
         overrides.append("replay_buffer.her=true")
-    cfg = config(*overrides)
+    cfg = tiny_config(*overrides)
     with pytest.raises((ValueError, TypeError)) as err:
         sac_silp.train(cfg)
     assert name in str(err.value)
     assert not (tmp_path / "run" / "checkpoint").exists()
 
 
-def test_resume_with_a_changed_network_is_refused_before_anything_is_written(tmp_path, capsys):
+def test_resume_with_a_changed_network_is_refused_before_anything_is_written(tmp_path, capsys, tiny_config):
     run_dir = tmp_path / "run"
-    saved = config(*TINY, f"run_dir={run_dir}")
-    utils.start_run(saved)
+    saved = tiny_config()
+    start.start_run(saved)
     (run_dir / "checkpoint").mkdir()
     torch.save({}, run_dir / "checkpoint" / "state.pt")  # what checkpoint_exists looks for
     before = (run_dir / "config.yaml").read_text()
-    changed = config(*TINY, f"run_dir={run_dir}", "resume=true", "network.hidden_sizes=[64,64]")
+    changed = tiny_config("resume=true", "network.hidden_sizes=[64,64]")
     with pytest.raises(ValueError, match="resume: network is"):
-        utils.start_run(changed)
+        start.start_run(changed)
     assert (run_dir / "config.yaml").read_text() == before
     # the same config resumes; a field that does not shape networks or buffers may change
-    assert utils.check_resume(config(*TINY, f"run_dir={run_dir}", "resume=true", "optim.lr=1e-4"), run_dir)
+    assert checkpointing.check_resume(tiny_config("resume=true", "optim.lr=1e-4"), run_dir)
     # a run saved while network.onednn_linear existed resumes: the field is ignored, with a notice
     network_line = next(line for line in before.splitlines() if line.startswith("network:"))
     (run_dir / "config.yaml").write_text(before.replace(network_line, network_line + "\n  onednn_linear: auto"))
-    assert utils.check_resume(config(*TINY, f"run_dir={run_dir}", "resume=true"), run_dir)
+    assert checkpointing.check_resume(tiny_config("resume=true"), run_dir)
     assert capsys.readouterr().out.count("network.onednn_linear='auto'") == 1
     (run_dir / "config.yaml").write_text(before.replace(network_line, network_line + "\n  other_network_field: 1"))
     with pytest.raises(ValueError, match="resume: network is"):  # the rest of the network still counts
-        utils.check_resume(config(*TINY, f"run_dir={run_dir}", "resume=true"), run_dir)
+        checkpointing.check_resume(tiny_config("resume=true"), run_dir)
 
 
-def test_resume_without_a_checkpoint_says_so_and_starts_fresh(tmp_path, capsys):
-    cfg = config(*TINY, f"run_dir={tmp_path / 'run'}", "resume=true")
-    assert utils.check_resume(cfg, tmp_path / "run") is False
+def test_resume_without_a_checkpoint_says_so_and_starts_fresh(tmp_path, capsys, tiny_config):
+    cfg = tiny_config("resume=true")
+    assert checkpointing.check_resume(cfg, tmp_path / "run") is False
     assert "holds no checkpoint: starting a new run" in capsys.readouterr().out
 
 
-def test_resume_must_refuses_without_a_checkpoint_before_anything_is_written(tmp_path):
-    cfg = config(*TINY, f"run_dir={tmp_path / 'run'}", "resume=must")
+def test_resume_must_refuses_without_a_checkpoint_before_anything_is_written(tmp_path, tiny_config):
+    cfg = tiny_config("resume=must")
     with pytest.raises(FileNotFoundError, match="resume=must"):
-        utils.start_run(cfg)
+        start.start_run(cfg)
     assert not (tmp_path / "run").exists()
     with pytest.raises(ValueError, match="resume must be"):
-        utils.start_run(config(*TINY, f"run_dir={tmp_path / 'run'}", "resume=maybe"))
+        start.start_run(tiny_config("resume=maybe"))
 
 
 def test_truncate_logs_drops_the_rows_after_the_step(tmp_path):
@@ -206,13 +196,13 @@ def test_truncate_logs_drops_the_rows_after_the_step(tmp_path):
     (scalars / "eval" / "success_rate.csv").write_text("200,0.5\n400,0.7\n")
     (tmp_path / "logs" / "exp" / "texts").mkdir()
     (tmp_path / "logs" / "exp" / "texts" / "hparams0.txt").write_text("400,not a row\n")
-    assert utils.truncate_logs(tmp_path / "logs", 200) == 3
+    assert metrics.truncate_logs(tmp_path / "logs", 200) == 3
     assert (scalars / "train" / "episodes.csv").read_text() == "100,1\n200,3\n"
     assert (scalars / "eval" / "success_rate.csv").read_text() == "200,0.5\n"
     assert (tmp_path / "logs" / "exp" / "texts" / "hparams0.txt").read_text() == "400,not a row\n"
-    assert utils.truncate_logs(tmp_path / "logs", 200) == 0
-    assert utils.truncate_logs(tmp_path / "logs", 0) == 3  # a run started afresh in the same run_dir
-    assert utils.truncate_logs(tmp_path / "nowhere", 0) == 0
+    assert metrics.truncate_logs(tmp_path / "logs", 200) == 0
+    assert metrics.truncate_logs(tmp_path / "logs", 0) == 3  # a run started afresh in the same run_dir
+    assert metrics.truncate_logs(tmp_path / "nowhere", 0) == 0
 
 
 def test_stop_request_catches_sigterm_once_then_restores_the_handler():
@@ -221,7 +211,7 @@ def test_stop_request_catches_sigterm_once_then_restores_the_handler():
 
     before = signal.getsignal(signal.SIGTERM)
     before_int = signal.getsignal(signal.SIGINT)  # (SIG_IGN where the suite runs as a background job)
-    with utils.StopRequest() as stop:
+    with checkpointing.StopRequest() as stop:
         assert not stop.requested
         os.kill(os.getpid(), signal.SIGTERM)
         assert stop.requested and stop.signum == signal.SIGTERM
@@ -235,19 +225,19 @@ def test_stop_request_catches_sigterm_once_then_restores_the_handler():
 
 def _gradient_step_setup(cfg):
     cpu = torch.device("cpu")
-    model = utils.make_model(cfg, cpu)
-    env = utils.make_env(cfg, model, cpu, seed=0)
+    model = builders.make_model(cfg, cpu)
+    env = builders.make_env(cfg, model, cpu, seed=0)
     torch.manual_seed(0)
-    actor, critic = utils.make_actor_critic(cfg, model, env, cpu)
-    loss, updater = utils.make_loss(cfg, actor, critic, model, env)
-    optimizers = utils.make_optimizers(cfg, loss)
-    buffers = utils.make_buffers(cfg, model, cpu)
+    actor, critic = builders.make_actor_critic(cfg, model, env, cpu)
+    loss, updater = builders.make_loss(cfg, actor, critic, model, env)
+    optimizers = builders.make_optimizers(cfg, loss)
+    buffers = builders.make_buffers(cfg, model, cpu)
     with torch.no_grad():
         episodes = env.rollout(cfg.env.max_steps, break_when_any_done=False)
     buffers.extend(episodes)
     buffers.demo_buffer.extend(episodes)
 
-    return loss, buffers, utils.make_gradient_step(loss, optimizers, updater)
+    return loss, buffers, update.make_gradient_step(loss, optimizers, updater)
 
 
 @pytest.mark.parametrize("overrides", [
@@ -256,11 +246,11 @@ def _gradient_step_setup(cfg):
     # the default compile.guards=inputs, which drops the guards on the loss but keeps those on the batch
     ("silp.filter=reward",),
 ])
-def test_compiled_gradient_step_equals_the_eager_one(overrides):
+def test_compiled_gradient_step_equals_the_eager_one(overrides, tiny_config):
     """SAC-SILP+ updates from the same parameters, batches and random stream: compiled = eager."""
     import torch._inductor.config as inductor_config
 
-    cfg = config(*TINY, "network.hidden_sizes=[32,32]", "optim.batch_size=32", "compile.compile=true", *overrides)
+    cfg = tiny_config("network.hidden_sizes=[32,32]", "optim.batch_size=32", "compile.compile=true", *overrides)
     loss, buffers, eager_step = _gradient_step_setup(cfg)
     start = {k: v.clone() for k, v in loss.state_dict().items()}
     batches = [buffers.sample() for _ in range(3)]
@@ -272,7 +262,7 @@ def test_compiled_gradient_step_equals_the_eager_one(overrides):
     after_eager = {k: v.clone() for k, v in loss.state_dict().items()}
     loss2, _, step2 = _gradient_step_setup(cfg)  # fresh optimisers, as the eager step started with
     loss2.load_state_dict(start)
-    compiled = utils.compile_update(cfg, step2)
+    compiled = update.compile_update(cfg, step2)
     torch.set_rng_state(rng)
     # fallback_random: the eager random stream in compiled code (the config's own patch, undone on exit;
     # monkeypatch's undo leaves inductor's config without the entry)
@@ -298,9 +288,9 @@ def _no_fallback_warning():
     return check()
 
 
-def test_a_gradient_step_whose_compilation_fails_updates_as_the_eager_one(monkeypatch):
+def test_a_gradient_step_whose_compilation_fails_updates_as_the_eager_one(monkeypatch, tiny_config):
     """The fallback zeroes what the failed call accumulated: the update equals the eager one exactly."""
-    cfg = config(*TINY, "network.hidden_sizes=[32,32]", "optim.batch_size=32", "compile.compile=true")
+    cfg = tiny_config("network.hidden_sizes=[32,32]", "optim.batch_size=32", "compile.compile=true")
     loss, buffers, eager_step = _gradient_step_setup(cfg)
     start = {k: v.clone() for k, v in loss.state_dict().items()}
     batch = buffers.sample()
@@ -319,7 +309,7 @@ def test_a_gradient_step_whose_compilation_fails_updates_as_the_eager_one(monkey
     monkeypatch.setattr(torch, "compile", half_done)
     loss2, _, step2 = _gradient_step_setup(cfg)
     loss2.load_state_dict(start)
-    compiled = utils.compile_update(cfg, step2)
+    compiled = update.compile_update(cfg, step2)
     torch.manual_seed(1)
     with pytest.warns(UserWarning, match="runs eagerly"):
         compiled(batch)
@@ -327,8 +317,8 @@ def test_a_gradient_step_whose_compilation_fails_updates_as_the_eager_one(monkey
         torch.testing.assert_close(loss2.state_dict()[key], value, rtol=0, atol=0, msg=key)
 
 
-def test_a_failing_compilation_falls_back_on_the_eager_step(monkeypatch):
-    cfg = config(*TINY, "compile.compile=true")
+def test_a_failing_compilation_falls_back_on_the_eager_step(monkeypatch, tiny_config):
+    cfg = tiny_config("compile.compile=true")
     calls = []
 
     def boom(fn, **kwargs):
@@ -337,29 +327,29 @@ def test_a_failing_compilation_falls_back_on_the_eager_step(monkeypatch):
         return failing
 
     monkeypatch.setattr(torch, "compile", boom)
-    step = utils.compile_update(cfg, lambda sample: calls.append(sample) or sample)
+    step = update.compile_update(cfg, lambda sample: calls.append(sample) or sample)
     with pytest.warns(UserWarning, match="torch.compile failed .*no C\\+\\+ compiler.*runs eagerly"):
         assert step(1) == 1
     assert step(2) == 2 and calls == [1, 2]
-    assert utils.compile_update(config(*TINY, "compile.compile=false"), abs) is abs
+    assert update.compile_update(tiny_config("compile.compile=false"), abs) is abs
 
 
 def test_cudagraphs_is_refused_where_it_cannot_run_naming_the_field():
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
     with pytest.raises(ValueError, match="compile.cudagraphs captures the update in a CUDA graph: it needs device=cuda"):
-        utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask"), cpu)
+        update.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask"), cpu)
     with pytest.raises(ValueError, match="set silp.demo_rows=mask or auto \\(got 'select'"):
-        utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=select"), cuda)
+        update.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=select"), cuda)
     with pytest.raises(ValueError, match="reduce-overhead both capture CUDA graphs"):
-        utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask",
+        update.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask",
                                    "compile.compile_mode=reduce-overhead"), cuda)
     # what can run: fixed shapes on CUDA (auto takes them, whatever the filter), and plain SAC, which has no BC term
-    utils.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask"), cuda)
-    utils.check_compile(config("compile.cudagraphs=true", "silp.filter=reward"), cuda)
-    utils.check_compile(config("compile.cudagraphs=true", "method=sac"), cuda)
+    update.check_compile(config("compile.cudagraphs=true", "silp.demo_rows=mask"), cuda)
+    update.check_compile(config("compile.cudagraphs=true", "silp.filter=reward"), cuda)
+    update.check_compile(config("compile.cudagraphs=true", "method=sac"), cuda)
     # and start_run refuses before it writes anything
     with pytest.raises(ValueError, match="needs device=cuda"):
-        utils.start_run(config("compile.cudagraphs=true", "silp.demo_rows=mask", "run_dir=/nonexistent/never"))
+        start.start_run(config("compile.cudagraphs=true", "silp.demo_rows=mask", "run_dir=/nonexistent/never"))
     assert not Path("/nonexistent/never").exists()
 
 
@@ -368,18 +358,18 @@ def test_compile_kwargs_pass_the_mode_as_options_beside_the_guard_filter_and_ref
 
     from torchrl_silp.compiling import skip_module_and_global_guards
 
-    assert utils.compile_kwargs(config("compile.guards=all", "compile.compile_mode=max-autotune")) == {
+    assert update.compile_kwargs(config("compile.guards=all", "compile.compile_mode=max-autotune")) == {
         "mode": "max-autotune"}
-    kwargs = utils.compile_kwargs(config("compile.guards=inputs", "compile.compile_mode=max-autotune"))
+    kwargs = update.compile_kwargs(config("compile.guards=inputs", "compile.compile_mode=max-autotune"))
     # torch.compile refuses mode= beside options=: the mode's own options, and the filter
     assert set(kwargs) == {"options", "isolate_recompiles"}
     assert kwargs["options"] == {**list_mode_options("max-autotune"),
                                  "guard_filter_fn": skip_module_and_global_guards}
     assert kwargs["options"]["max_autotune"] is True and kwargs["isolate_recompiles"] is True
     with pytest.raises(ValueError, match="compile.guards must be one of \\('all', 'inputs'\\), got 'none'"):
-        utils.check_compile(config("compile.guards=none"), torch.device("cpu"))
+        update.check_compile(config("compile.guards=none"), torch.device("cpu"))
     with pytest.raises(ValueError, match="compile.guards must be one of"):
-        utils.start_run(config("compile.guards=none", "run_dir=/nonexistent/never"))
+        start.start_run(config("compile.guards=none", "run_dir=/nonexistent/never"))
     assert not Path("/nonexistent/never").exists()
 
 
@@ -394,28 +384,28 @@ def test_compile_kwargs_pass_the_mode_as_options_beside_the_guard_filter_and_ref
 ])
 def test_auto_demo_rows_resolve_to_the_faster_way_for_the_run(overrides, rows):
     cfg = config(*overrides)
-    assert utils.demo_rows_of(cfg) == rows
-    model = utils.make_model(cfg, torch.device("cpu"))
-    env = utils.make_env(cfg, model, torch.device("cpu"), seed=0)
-    actor, critic = utils.make_actor_critic(cfg, model, env, torch.device("cpu"))
-    assert utils.make_loss(cfg, actor, critic, model, env)[0].demo_rows == rows
+    assert builders.demo_rows_of(cfg) == rows
+    model = builders.make_model(cfg, torch.device("cpu"))
+    env = builders.make_env(cfg, model, torch.device("cpu"), seed=0)
+    actor, critic = builders.make_actor_critic(cfg, model, env, torch.device("cpu"))
+    assert builders.make_loss(cfg, actor, critic, model, env)[0].demo_rows == rows
 
 
 def test_bad_demo_rows_is_refused_naming_the_field():
     with pytest.raises(ValueError, match="silp.demo_rows must be one of \\('select', 'mask', 'auto'\\), got 'all'"):
-        utils.demo_rows_of(config("silp.demo_rows=all"))
+        builders.demo_rows_of(config("silp.demo_rows=all"))
 
 
-def test_cudagraphs_makes_the_optimisers_capturable():
-    cfg = config(*TINY, "network.hidden_sizes=[32,32]", "compile.cudagraphs=true", "silp.demo_rows=mask")
+def test_cudagraphs_makes_the_optimisers_capturable(tiny_config):
+    cfg = tiny_config("network.hidden_sizes=[32,32]", "compile.cudagraphs=true", "silp.demo_rows=mask")
     _, _, step = _gradient_step_setup(cfg)
     assert {name: opt.defaults["capturable"] for name, opt in step.optimizers.items()} == {
         "actor": True, "critic": True, "alpha": True}
-    _, _, step = _gradient_step_setup(config(*TINY, "network.hidden_sizes=[32,32]"))
+    _, _, step = _gradient_step_setup(tiny_config("network.hidden_sizes=[32,32]"))
     assert not any(opt.defaults["capturable"] for opt in step.optimizers.values())
 
 
-def test_a_failed_cuda_graph_capture_runs_every_batch_s_update_once(monkeypatch):
+def test_a_failed_cuda_graph_capture_runs_every_batch_s_update_once(monkeypatch, tiny_config):
     """A capture that fails after CudaGraphModule's run of the step: that batch is not updated twice."""
     import tensordict.nn
 
@@ -432,8 +422,8 @@ def test_a_failed_cuda_graph_capture_runs_every_batch_s_update_once(monkeypatch)
 
     monkeypatch.setattr(tensordict.nn, "CudaGraphModule", CaptureFails)
     calls = []
-    cfg = config(*TINY, "compile.cudagraphs=true", "compile.warmup=3")
-    step = utils.compile_update(cfg, lambda sample: calls.append(sample) or -sample)
+    cfg = tiny_config("compile.cudagraphs=true", "compile.warmup=3")
+    step = update.compile_update(cfg, lambda sample: calls.append(sample) or -sample)
     assert [step(1), step(2)] == [-1, -2]
     with pytest.warns(UserWarning, match="compile.cudagraphs: the capture failed .*not permitted.*without a CUDA graph"):
         assert step(3) == -3

@@ -346,10 +346,8 @@ def test_sac_silp_learns_to_reach(tmp_path):
     assert out["demos_stored"] > 10_000
 
 
-def test_time_to_success_benchmark_stops_on_validation_and_tests_once(tmp_path, capsys):
-    sys.path.insert(0, str(RECIPES.parent / "benchmarks"))
-    import time_to_success
-
+def test_time_to_success_benchmark_stops_on_validation_and_tests_once(tmp_path, capsys, load_benchmark):
+    time_to_success = load_benchmark("time_to_success")
     from torchrl_silp.eval import DEFAULT_VALIDATION_SEED
 
     tiny = [o for o in TINY if not o.startswith("threads")]

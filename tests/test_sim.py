@@ -120,7 +120,7 @@ def test_noise_changes_what_the_policy_sees_not_the_world(model):
 def test_bad_arguments_name_the_parameter(model):
     with pytest.raises(ValueError, match="obstacle_noise"):
         Perception(obstacle_noise=-0.1)
-    with pytest.raises(ValueError, match="latency_steps"):
+    with pytest.raises(TypeError, match="latency_steps"):
         Perception(latency_steps=1.5)
     with pytest.raises(ValueError, match="scenario"):
         scenario_tasks(model, "nope", 4, seed=0)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,10 +11,9 @@ import yaml
 
 ray = pytest.importorskip("ray")
 
-RECIPES = Path(__file__).parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
-import report  # noqa: E402
-import sweep  # noqa: E402
+from torchrl_silp.recipes import report, sweep  # noqa: E402  (after the skip without Ray)
+
+RECIPES = Path(sweep.__file__).parent
 
 METHODS, SEEDS = ("sac", "sac_demon"), (0, 1)
 # seconds-long runs: 8 envs of 10-step episodes, two collector batches, a few gradient steps

@@ -1,0 +1,127 @@
+"""What a training run counts, logs and leaves behind.
+
+The loop's counters (:func:`new_counters`), the metrics it logs after each collector batch
+(``train/…``, ``eval/…``, ``time/…``: :func:`batch_metrics`, :func:`log_metrics`), and the files a
+sweep and its report read: ``summary.json`` (:func:`summarize`), ``history.json`` and the learning
+curve.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import torch
+
+
+def new_counters() -> dict:
+    """The loop's counters at the start of a run (a resumed run restores its own)."""
+    return {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0, "swept_collisions": 0,
+            "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None,
+            # the BC filter's kept share of demo rows, summed over the updates since the last evaluation point
+            "bc_kept_sum": 0.0, "bc_kept_updates": 0}
+
+
+def log_metrics(logger, metrics: dict, step: int) -> None:
+    """Log each metric as a scalar at ``step`` (no logger: nothing; None and NaN are skipped)."""
+    if logger is None:
+        return
+    for name, value in metrics.items():
+        if isinstance(value, torch.Tensor):
+            value = value.item()
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            continue
+        logger.log_scalar(name, value, step)
+
+
+def batch_metrics(batch, losses: list, counters: dict, demos_stored: int) -> dict:
+    """What the loop logs after a collector batch: the counters, the episodes it ended, the mean losses."""
+    metrics = {"train/collisions": counters["collisions"], "train/swept_collisions": counters["swept_collisions"],
+               "train/episodes": counters["episodes"], "train/demos": demos_stored,
+               "time/train_wall_s": counters["train_wall_s"]}
+    ended = batch["next", "done"]
+    if ended.any():
+        metrics["train/episode_reward"] = batch["next", "episode_reward"][ended].mean().item()
+        metrics["train/success_rate"] = batch["next", "success"][ended].float().mean().item()
+    if losses:
+        for key, value in torch.stack(losses).items():
+            if key.startswith("loss_") or key in ("alpha", "bc_filter_fraction", "bc_mse"):
+                metrics[f"train/{key}"] = value.float().mean().item()
+    return metrics
+
+
+def plot_learning_curve(history: list[dict], path: Path, label: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    if history:
+        ax.plot([h["episodes"] for h in history], [h["success_rate"] for h in history], marker="o", label=label)
+    ax.set_xlabel("training episodes")
+    ax.set_ylabel("test success rate")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def summarize(cfg, counters: dict, final: dict, demos_stored: int, validation: dict | None = None) -> dict:
+    """The run's ``summary.json``: the method, the final test evaluation (and the validation one) and the counters."""
+    return {
+        "method": cfg.logger.exp_name, "env": cfg.env.name, "algorithm": cfg.algorithm, "silp_bc": cfg.silp.bc,
+        "silp_demos": cfg.silp.demos, "her": cfg.replay_buffer.her, "exploration": cfg.exploration.mode,
+        "seed": cfg.seed, "success_rate": final["success_rate"], "test_seed": cfg.eval.test_seed,
+        "validation_success_rate": None if validation is None else validation["success_rate"],
+        "validation_seed": cfg.eval.seed,
+        "online_success_rate": final.get("online_success_rate", final["success_rate"]),
+        "evaluated_actor": "online" if cfg.eval.actor_average_decay is None
+        else f"average (decay {cfg.eval.actor_average_decay})",
+        "test_collision_rate": final["collision_rate"], "collisions_during_training": counters["collisions"],
+        # collisions of a motion whose reached state is free: what a check of the reached state alone let pass
+        "swept_collisions_during_training": counters.get("swept_collisions", 0),
+        "episodes": counters["episodes"], "frames": counters["frames"], "updates": counters["updates"],
+        "train_wall_s": counters["train_wall_s"], "planning_s": counters["planning_s"],
+        "planning_share": counters["planning_s"] / max(counters["train_wall_s"], 1e-9),
+        "time_to_095_s": counters["time_to_095_s"], "rollout_time_per_episode_s": final["time_per_rollout_s"],
+        "demos_stored": demos_stored,
+        # demonstrations were on and the planner stored none: SILP+ ran as plain RL
+        "warning": "silp.demos is on but no demonstration was stored" if cfg.silp.demos and not demos_stored else None,
+    }
+
+
+def write_json(path: Path, payload: dict) -> None:
+    """``payload`` as indented JSON (tensors and numpy scalars as floats)."""
+    Path(path).write_text(json.dumps(payload, indent=2, default=float))
+
+
+def write_results(run_dir: Path, summary: dict, history: list[dict]) -> None:
+    """What every recipe leaves for a sweep and its report: ``summary.json`` and ``history.json``; prints the summary."""
+    write_json(Path(run_dir) / "summary.json", summary)
+    write_json(Path(run_dir) / "history.json", {"history": history})
+    print("\n".join(f"{k:>30s}: {v}" for k, v in summary.items()))
+
+
+def truncate_logs(log_dir: Path, last_step: int) -> int:
+    """Drop the rows of a run's CSV scalar logs written after step ``last_step``; returns how many.
+
+    A resumed run redoes the steps after its checkpoint (and a run started afresh in the
+    same ``run_dir`` all of them): their first rows go, so that no step appears twice.
+    TorchRL's ``CSVLogger`` appends ``step,value`` rows to ``<name>.csv``.
+    """
+    dropped = 0
+    for path in sorted(Path(log_dir).rglob("*.csv")):
+        rows = path.read_text().splitlines(keepends=True)
+        kept = [row for row in rows if int(float(row.split(",", 1)[0])) <= last_step]
+        if len(kept) != len(rows):
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text("".join(kept))
+            os.replace(tmp, path)
+            dropped += len(rows) - len(kept)
+    return dropped

@@ -1,0 +1,52 @@
+"""What every recipe does first: the device, torch's threads, the seeds, the run directory and its config."""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+from torchrl_silp.recipes.checkpointing import check_resume
+from torchrl_silp.recipes.update import check_compile
+
+
+def check_device(value) -> None:
+    """Refuses a ``device`` that is not cpu, cuda, cuda:N or auto, or CUDA on a machine without one."""
+    if value not in ("cpu", "cuda", "auto") and not str(value).startswith("cuda:"):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {value!r}")
+    if str(value).startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device={value!r}, but torch finds no CUDA device here: use device=cpu or device=auto")
+
+
+def resolve_device(cfg) -> torch.device:
+    """``cfg.device`` checked and resolved ("auto": CUDA when there is one)."""
+    check_device(cfg.device)
+    return torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
+
+
+def start_run(cfg) -> tuple[torch.device, Path]:
+    """What every recipe does first: ``(device, run_dir)``.
+
+    Resolves ``cfg.device`` ("auto": CUDA when there is one), checks a resume against the
+    checkpointed run's config (:func:`check_resume`), sets torch's threads (``cfg.threads``,
+    0 leaves the default), seeds torch, numpy and ``random`` with ``cfg.seed``, creates
+    ``cfg.run_dir`` and saves the resolved config there as ``config.yaml``: what rebuilds a
+    run's networks from its checkpoint (``load_trained_networks``) and what a report cites.
+    """
+    device = resolve_device(cfg)
+    check_compile(cfg, device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    random.seed(cfg.seed)
+    run_dir = Path(cfg.run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"run_dir {str(run_dir)!r} is a file: give a directory (it is created if missing)")
+    check_resume(cfg, run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
+    return device, run_dir

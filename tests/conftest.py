@@ -1,0 +1,60 @@
+"""Fixtures shared by the test files: the task model, a seconds-long recipe config, the benchmark scripts."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+from torchrl_silp.models import UR5eReach
+from torchrl_silp.recipes.schema import load_config
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+# a recipe run of seconds: 4 envs, 100 transitions per collector batch, 8 evaluation tasks, an eager
+# update, no progress bar, no logger
+TINY_RECIPE = ("env.num_envs=4", "collector.frames_per_batch=100", "eval.n_tasks=8", "progress=false",
+               "logger.backend=", "compile.compile=false")
+
+
+@pytest.fixture(scope="module")
+def model():
+    """The UR5e reach task model with its defaults (stateless, so a module's tests share one)."""
+    return UR5eReach()
+
+
+@pytest.fixture
+def tiny_config(tmp_path):
+    """``tiny_config(*overrides, name="sac_silp")``: a recipe's config (``recipes/config/<name>.yaml``) cut to a
+    seconds-long run (:data:`TINY_RECIPE`) writing to ``tmp_path / "run"``, then ``overrides``."""
+
+    def compose(*overrides: str, name: str = "sac_silp"):
+        return load_config(name, [*TINY_RECIPE, f"run_dir={tmp_path / 'run'}", *overrides])
+
+    return compose
+
+
+def _load_script(name: str):
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+@pytest.fixture(scope="session")
+def load_benchmark():
+    """``load_benchmark(name)``: the script ``benchmarks/<name>.py`` as a module.
+
+    The benchmarks are scripts, not a package: run as ``python benchmarks/<name>.py`` they import
+    their helper ``benchmarks/timing.py`` as ``timing``, which is loaded first under that name here.
+    """
+
+    def load(name: str):
+        _load_script("timing")
+        return _load_script(name)
+
+    return load
