@@ -121,10 +121,31 @@ def test_starts_within_the_motion_margin():
 def test_to_device_leaves_a_tensor_behind():
     class Unmoved(PointReach):
         def to(self, device):
-            TaskModel.to(self, device)  # the limits stay where they are
+            low = self.config_low
+            super().to(device)
+            self.config_low = low  # a limit put back from before the move stays where it was
             return self
 
     _refused(Unmoved(), "to", r"still on cpu after to\('meta'\): \['model.config_low'")
+
+
+def test_the_base_to_moves_a_subclass_s_own_tensors():
+    class OwnTensors(PointReach):
+        def __init__(self):
+            super().__init__()
+            self.table = torch.zeros(3)
+            self.parts = [torch.ones(2), (torch.ones(1), "name")]
+            self.named = {"a": torch.ones(4), "k": 3}
+            self.net = torch.nn.Linear(2, 2)
+
+        to = TaskModel.to  # no override: the base moves what the subclass holds
+
+    model = OwnTensors().to("meta")
+    moved = [model.table, model.parts[0], model.parts[1][0], model.named["a"], model.net.weight,
+             model.config_low, model.config_high]
+    assert [t.device.type for t in moved] == ["meta"] * len(moved)
+    assert model.parts[1][1] == "name" and model.named["k"] == 3 and model.device == torch.device("meta")
+    check_task_model(OwnTensors())
 
 
 def test_a_flag_the_clearance_does_not_explain():

@@ -276,7 +276,7 @@ def test_box_check_accepts_exactly_the_finite_ordered_boxes(values):
         return
     with pytest.raises(ValueError) as err:
         check_boxes("obstacle", boxes)
-    expected = "obstacle contains NaN or inf" if not finite else "obstacle: a box has min > max"
+    expected = "obstacle must be finite" if not finite else "obstacle: a box has min > max"
     assert str(err.value).startswith(expected)
 
 
@@ -304,10 +304,10 @@ def test_cover_points_from_trig_equal_per_sample_spheres_and_check_their_shapes(
     cos, sin = model.robot.joint_trig(q)
     points = model.robot.cover_points_from_trig(cos, sin)  # (3, N, S + 1)
     s = model.robot.n_spheres
-    for i in (0, 17, 49):  # one configuration at a time
+    for i in (0, 17, 49):  # one configuration at a time: the same products batched otherwise, float32's last bit
         centres, tcp = model.robot.spheres_and_tcp(q[i])
-        torch.testing.assert_close(points[:, i, :s].T, centres, atol=1e-12, rtol=0)
-        torch.testing.assert_close(points[:, i, s], tcp, atol=1e-12, rtol=0)
+        torch.testing.assert_close(points[:, i, :s].T, centres, atol=1e-7, rtol=0)
+        torch.testing.assert_close(points[:, i, s], tcp, atol=1e-7, rtol=0)
     torch.testing.assert_close(points[:, :, s].T, model.robot.reference_fk(q), atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="cos and sin"):
         model.robot.cover_points_from_trig(cos, sin[:3])

@@ -627,7 +627,7 @@ def test_keys_of_another_history_size_raise(model):
     [
         (dict(mode="greedy"), ValueError),
         (dict(num_candidates=0), ValueError),
-        (dict(history_size=1.5), ValueError),
+        (dict(history_size=1.5), TypeError),
         (dict(lengthscale=0.0), ValueError),
         (dict(noise=-1e-3), ValueError),
         (dict(fit_hyperparameters="yes"), TypeError),

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import copy
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,7 +24,6 @@ from torchrl_silp.models.learned_collision import (
 )
 from torchrl_silp.planning import plan_demonstrations
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
 @pytest.fixture(scope="module")
@@ -122,10 +119,8 @@ def test_a_trained_net_separates_the_classes(model):
 
 
 def test_the_recipe_option_loads_the_net_into_the_planners_model(model, tmp_path):
-    sys.path.insert(0, str(RECIPES))
-    import schema
-    import utils
-    from hydra import compose, initialize_config_dir
+    from torchrl_silp.recipes import builders
+    from torchrl_silp.recipes.schema import load_config
 
     net = constant_net(20.0)
     path = tmp_path / "net.pt"
@@ -133,10 +128,8 @@ def test_the_recipe_option_loads_the_net_into_the_planners_model(model, tmp_path
     loaded = load_collision_net(path)
     x = torch.randn(5, 9)
     torch.testing.assert_close(loaded(x), net(x))
-    schema.register()
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        cfg = compose(config_name="sac_silp", overrides=[f"planner.collision_net={path}", "planner.collision_threshold=0.7"])
-    buffers = utils.make_buffers(cfg, model, torch.device("cpu"))
+    cfg = load_config("sac_silp", [f"planner.collision_net={path}", "planner.collision_threshold=0.7"])
+    buffers = builders.make_buffers(cfg, model, torch.device("cpu"))
     planner_model = buffers.demo_buffer.model
     assert planner_model.edge_check.threshold == 0.7 and type(planner_model) is UR5eReach
     assert planner_model.edge_check.net.mlp[-1].bias.item() == 20.0

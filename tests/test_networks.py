@@ -4,7 +4,6 @@ import copy
 
 import pytest
 import torch
-from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.envs import TransformedEnv

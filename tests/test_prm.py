@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -33,7 +32,6 @@ from torchrl_silp.eval import episode_outcomes  # noqa: E402
 from torchrl_silp.geometry import CollisionReason  # noqa: E402
 from torchrl_silp.models import TaskModel, UR5eReach  # noqa: E402
 
-RECIPES = Path(__file__).parents[1] / "recipes"
 # planning may overrun its budget by at most 20 % plus 0.25 s. The overrun is the collision check under
 # way and OMPL stopping its roadmap thread (a few milliseconds alone); on a loaded machine scheduling stalls
 # add to it (up to 178 ms seen with two training runs beside the suite on 2 cores)
@@ -420,11 +418,12 @@ def test_demonstration_stats_add_up_the_batches():
         prm_demonstration_stats([], 0, 0.0)
 
 
-@pytest.mark.parametrize("start_episode", [1, 6, 8, -2, 2.0, True])
-def test_a_start_episode_off_the_batches_is_refused_before_planning(model, monkeypatch, start_episode):
+@pytest.mark.parametrize("start_episode,error", [(1, ValueError), (6, ValueError), (8, ValueError),
+                                                 (-2, ValueError), (2.0, TypeError), (True, TypeError)])
+def test_a_start_episode_off_the_batches_is_refused_before_planning(model, monkeypatch, start_episode, error):
     monkeypatch.setattr(prm_module, "_COLLECT_BATCH", 2)
     monkeypatch.setattr(prm_module, "_plan_tasks", lambda *a: pytest.fail("planned before the check"))
-    with pytest.raises(ValueError, match="start_episode"):
+    with pytest.raises(error, match="start_episode"):
         prm_demonstration_batches(model, 6, 0.1, start_episode=start_episode)
 
 
@@ -491,15 +490,10 @@ def test_the_baseline_knows_no_env_class():
 # ------------------------------------------------------------- (e) recipe
 def recipe_and_config(*overrides: str):
     """recipes/prm.py imported in-process, and its hydra config composed with ``overrides``."""
-    from hydra import compose, initialize_config_dir
+    from torchrl_silp.recipes import prm as recipe
+    from torchrl_silp.recipes.schema import load_config
 
-    sys.path.insert(0, str(RECIPES))
-    try:
-        import prm as recipe
-    finally:
-        sys.path.remove(str(RECIPES))
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        return recipe, compose("prm", overrides=list(overrides))
+    return recipe, load_config("prm", overrides)
 
 
 def test_recipe_writes_a_summary_consistent_with_evaluate_prm(tmp_path):

@@ -349,7 +349,6 @@ def test_lambdas_are_schedulable(model):
         (dict(filter="reward"), "needs model"),
         (dict(filter="bogus"), "filter must be one of"),
         (dict(filter="none", k=0), "k must be"),
-        (dict(filter="none", k=1.5), "k must be"),
         (dict(filter="none", lambda1=-1.0), "lambda1"),
         (dict(filter="none", lambda2=float("nan")), "lambda2"),
         (dict(filter="none", gamma=1.5), "gamma"),
@@ -360,6 +359,12 @@ def test_bad_configuration_raises(kwargs, match):
     rl_loss, _ = make_loss("ddpg")
     with pytest.raises(ValueError, match=match):
         SILPLoss(rl_loss, **kwargs)
+
+
+def test_a_value_of_the_wrong_kind_raises_a_type_error():
+    rl_loss, _ = make_loss("ddpg")
+    with pytest.raises(TypeError, match="k must be"):
+        SILPLoss(rl_loss, filter="none", k=1.5)
 
 
 def test_bad_model_and_loss_raise():

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -135,26 +133,18 @@ def test_bad_arguments_name_the_parameter(model):
 
 
 # ------------------------------------------------------------------ recipes/transfer.py
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
 def compose(name: str, overrides: list[str]):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
+    from torchrl_silp.recipes.schema import load_config
 
-    sys.path.insert(0, str(RECIPES))
-    import schema
-
-    schema.register()
-    with initialize_config_dir(config_dir=str(RECIPES / "config"), version_base="1.3"):
-        return hydra_compose(config_name=name, overrides=overrides)
+    return load_config(name, overrides)
 
 
 @pytest.fixture(scope="module")
 def still_run(tmp_path_factory):
     """A run dir whose evaluated actor always outputs the action 0: its arm never moves."""
-    sys.path.insert(0, str(RECIPES))
-    import utils
+    from torchrl_silp.recipes import builders as utils
 
     root = tmp_path_factory.mktemp("still_run")
     cfg = compose("sac_silp", ["env.num_envs=4", "network.hidden_sizes=[16,16]", f"run_dir={root}"])
@@ -174,8 +164,7 @@ def still_run(tmp_path_factory):
 
 
 def test_transfer_recipe_runs_a_checkpoint_and_writes_its_results(still_run, tmp_path, capsys):
-    sys.path.insert(0, str(RECIPES))
-    import transfer
+    from torchrl_silp.recipes import transfer
 
     out = tmp_path / "t.json"
     cfg = compose("transfer", [f"checkpoint={still_run}", "scenario=free", "noise=none", "n_tasks=3", "max_steps=4",
@@ -260,8 +249,7 @@ def test_replanning_prm_reaches_free_goals_and_the_recipe_takes_one_policy(model
     policy = ReplanningPRMPolicy(model, tasks["goal_joint_position"], budget_s=0.1, seed=0)
     out = run_transfer(policy, model, tasks, control_dt=0.1, max_steps=30)
     assert out["success"].sum() >= 2 and policy.plans >= 3
-    sys.path.insert(0, str(RECIPES))
-    import transfer
+    from torchrl_silp.recipes import transfer
 
     with pytest.raises(ValueError, match="one of checkpoint .* and prm_budget_s"):
         transfer.run(compose("transfer", [f"checkpoint={still_run}", "prm_budget_s=0.1"]))

@@ -14,6 +14,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 
 from torchrl_silp.data.storage import FilledStorageCheckpointer
 from torchrl_silp.models.base import as_model
+from torchrl_silp.models.check import ensure_checked
 from torchrl_silp.planning import plan_demonstrations
 from torchrl_silp.planning.demos import check_planner_kwargs
 from torchrl_silp.validation import check_choice, check_positive_int, check_probability
@@ -122,6 +123,7 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
         **kwargs,
     ):
         model = as_model(model)
+        ensure_checked(model)  # e.g. bool collision flags, which the planner's bit tests would read as "free"
         if storage is None:
             check_positive_int(capacity, name="capacity")
             storage = LazyTensorStorage(capacity, device=_storage_device(device))
@@ -148,6 +150,7 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
 
         Episodes that yield no demonstration (no path found) add nothing.
         """
+        ensure_checked(self.model)  # a model changed since the buffer was built is checked again
         start = time.perf_counter()
         demos = plan_demonstrations(
             self.model, episodes, observation_transform=self.observation_transform, **self.planner_kwargs

@@ -10,6 +10,7 @@ from torchrl.data import Binary, Bounded, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 
 from torchrl_silp.models.base import TaskModel
+from torchrl_silp.models.check import ensure_checked
 from torchrl_silp.models.ur5e import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach
 from torchrl_silp.robot import UR5e
 from torchrl_silp.transforms import COLLISION_TYPES, CollisionHandling
@@ -52,7 +53,7 @@ class ReachEnv(EnvBase):
     with ``"goal_joint_position"`` and ``"step_count"``, as in TorchRL's stateless
     pendulum; ``_step`` reads it from its input, so transforms may change it. The
     flat ``"observation"`` is built by :meth:`TaskModel.observation_transform`
-    (a :class:`~torchrl.envs.CatTensors`), as :class:`UR5eReachEnv` does.
+    (a :class:`~torchrl_silp.transforms.FlatCatTensors`), as :class:`UR5eReachEnv` does.
 
     Args:
         model: the task model.
@@ -93,6 +94,7 @@ class ReachEnv(EnvBase):
         super().__init__(device=device, batch_size=batch)
         if model.device != device:
             model.to(device)
+        ensure_checked(model)  # a broken model fails here, naming the member and the rule, not deep in a step
         self.model = model
         self.max_steps = max_steps
         self.dtype = model.dtype

@@ -10,7 +10,7 @@ Gymnasium-Robotics use. Components (planner, demo buffer, loss, exploration,
 relabelling, evaluation) read these names and call the model; none of them
 knows a robot or an index into a flat observation. The flat ``"observation"``
 the networks read is built from the names by TorchRL's
-:class:`~torchrl.envs.CatTensors` (:meth:`TaskModel.observation_transform`).
+:class:`~torchrl_silp.transforms.FlatCatTensors` (:meth:`TaskModel.observation_transform`).
 
 A robot task implements the abstract members (kinematics, collision test of
 configurations, its clearance, task sampling); transition, reward, the swept
@@ -25,8 +25,8 @@ from abc import ABC, abstractmethod
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Composite, Unbounded
-from torchrl.envs import CatTensors
 
+from torchrl_silp.transforms import FlatCatTensors
 from torchrl_silp.validation import all_finite, check_bool, check_finite, check_positive_float, check_tensor
 
 __all__ = ["TaskModel", "as_model", "CONFIG_KEY", "ACHIEVED_GOAL_KEY", "DESIRED_GOAL_KEY", "GOAL_CONFIG_KEY"]
@@ -149,12 +149,24 @@ class TaskModel(ABC):
     def observation_keys(self) -> tuple[str, ...]:
         return self.state_keys
 
-    def observation_transform(self, out_key: str = "observation") -> CatTensors:
-        """The :class:`~torchrl.envs.CatTensors` that builds the flat observation from the named keys.
+    def observation_transform(self, out_key: str = "observation") -> FlatCatTensors:
+        """The transform that builds the flat observation from the named keys (:meth:`observation`):
+        a :class:`~torchrl_silp.transforms.FlatCatTensors`, so that a scene entry of any trailing shape
+        is flattened as :meth:`observation` flattens it.
 
         The named keys are kept (``del_keys=False``): components read them.
         """
-        return CatTensors(in_keys=list(self.observation_keys), out_key=out_key, del_keys=False, sort=False)
+        return FlatCatTensors({key: self._trailing_shape(key) for key in self.observation_keys}, out_key=out_key)
+
+    def _trailing_shape(self, key: str) -> tuple[int, ...]:
+        if key in (self.config_key,):
+            return (self.config_dim,)
+        if key in (self.achieved_goal_key, self.desired_goal_key):
+            return (self.goal_dim,)
+        if key in self.scene_shapes:
+            return tuple(self.scene_shapes[key])
+        raise KeyError(f"{type(self).__name__}.observation_keys: {key!r} is neither the configuration, a goal "
+                       "nor a key of scene_shapes, so its trailing shape is unknown")
 
     def observation(self, state: TensorDictBase) -> torch.Tensor:
         """The flat observation of ``state`` (what :meth:`observation_transform` writes)."""
@@ -230,8 +242,20 @@ class TaskModel(ABC):
 
     # --------------------------------------------------------- provided
     def to(self, device: torch.device | str) -> "TaskModel":
-        """Move the model's tensors to ``device`` (in place); returns the model."""
+        """Move the model's tensors to ``device`` (in place); returns the model.
+
+        Every tensor attribute of the instance moves, also inside lists, tuples and dicts, and every
+        attribute with a ``to(device)`` method of its own (an ``nn.Module``, a robot's kinematics, a
+        learned edge check), so that a subclass's own tensors follow without a ``to`` of its own.
+        """
         self.device = torch.device(device)
+        for name, value in list(vars(self).items()):
+            if not isinstance(value, (torch.Tensor, type)) and callable(getattr(value, "to", None)):
+                moved = value.to(self.device)
+                if moved is not None:
+                    setattr(self, name, moved)
+            else:
+                setattr(self, name, _moved(value, self.device))
         return self
 
     def motion_margin(self, resolution: float | None = None) -> dict[str, float]:
@@ -374,13 +398,14 @@ class TaskModel(ABC):
     def outcome(self, state: TensorDictBase, next_state: TensorDictBase) -> tuple[torch.Tensor, ...]:
         """``(reward, collision, success, collision_reason)`` of moving from ``state`` to ``next_state``, each ``(..., 1)``.
 
-        The motion collides when its segment does (:meth:`motion_collision_flags`).
+        The motion collides when its segment does (:meth:`motion_collision_flags`); the distance
+        to the goal is that of ``next_state``'s achieved goal.
         """
         self._check_state(state, "state")
         self._check_state(next_state, "next_state")
         scene = state.select(*self.scene_keys)
-        flags, goal = self.motion_collision_flags(state.get(self.config_key), next_state.get(self.config_key), scene)
-        return self.score(flags, goal.to(next_state.get(self.desired_goal_key).dtype), next_state.get(self.desired_goal_key))
+        flags, _ = self.motion_collision_flags(state.get(self.config_key), next_state.get(self.config_key), scene)
+        return self.score(flags, next_state.get(self.achieved_goal_key), next_state.get(self.desired_goal_key))
 
     def reward(self, state: TensorDictBase, next_state: TensorDictBase) -> torch.Tensor:
         """The reward f_r ``(..., 1)`` of moving from ``state`` to ``next_state``."""
@@ -389,18 +414,19 @@ class TaskModel(ABC):
     def step(self, state: TensorDictBase, action: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`transition` and :meth:`outcome` in one pass: ``(next_state, reward, collision, success, flags)``.
 
-        The motion check computes the achieved goal of the end configuration on its way,
-        so the kinematics run once.
+        Equal to them bit for bit: the achieved goal is :meth:`achieved_goal` of the end
+        configuration, not the one the motion check computes among its samples (a batched
+        product of another shape can round differently in the last bit).
         """
         self._check_state(state, "state")
         check_tensor(action, name="action", last_dim=self.action_dim)
         check_finite(action, name="action")
         config = state.get(self.config_key)
         nxt = self.next_config(config, action)
-        flags, goal = self.motion_collision_flags(config, nxt, state.select(*self.scene_keys))
+        flags, _ = self.motion_collision_flags(config, nxt, state.select(*self.scene_keys))
         out = state.select(*self.state_keys).clone(False)
         out.set(self.config_key, nxt)
-        out.set(self.achieved_goal_key, goal.to(nxt.dtype))
+        out.set(self.achieved_goal_key, self.achieved_goal(nxt).to(nxt.dtype))
         reward, collision, success, flags = self.score(flags, out.get(self.achieved_goal_key), out.get(self.desired_goal_key))
         return out, reward, collision, success, flags
 
@@ -420,6 +446,14 @@ class TaskModel(ABC):
         """The reward of a collision-free step that achieves ``achieved`` while ``desired`` is the goal."""
         dist = (achieved - desired).norm(dim=-1, keepdim=True)
         return torch.where(dist < self.success_distance, torch.full_like(dist, self.success_reward), -dist)
+
+    def scene_boxes(self, scene: TensorDictBase) -> torch.Tensor | None:
+        """The scene's obstacles as boxes in the goal space, for pictures: ``(..., K, 2 * goal_dim)``, each row
+        ``(min_0, max_0, min_1, max_1, ...)``; None (the default) where the scene is not boxes in that space.
+
+        :func:`~torchrl_silp.viz.save_rollout_png` draws them beside the achieved-goal paths.
+        """
+        return None
 
     def relabel(self, state: TensorDictBase, goal: torch.Tensor) -> TensorDictBase:
         """``state`` with ``goal`` as its desired goal (a shallow copy)."""
@@ -444,3 +478,14 @@ class TaskModel(ABC):
             raise KeyError(f"{name} lacks the keys {missing} (a state holds {self.state_keys})")
         for key in self.state_keys:
             check_finite(state.get(key), name=f"{name}[{key!r}]")
+
+
+def _moved(value, device: torch.device):
+    """``value`` with its tensors on ``device``: a tensor, or a list, tuple or dict holding tensors."""
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
+    if type(value) is dict:
+        return {k: _moved(v, device) for k, v in value.items()}
+    if type(value) in (list, tuple):
+        return type(value)(_moved(v, device) for v in value)
+    return value

@@ -10,9 +10,11 @@ on a small batch and raises one :class:`TaskModelError` naming the member and th
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
-import weakref
+import types
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 
@@ -20,8 +22,9 @@ from torchrl_silp.models.base import TaskModel
 
 __all__ = ["check_task_model", "TaskModelError", "ensure_checked"]
 
-# models that passed, so that the env, the demo buffer and the recipe check a model once between them
-_CHECKED: "weakref.WeakSet[TaskModel]" = weakref.WeakSet()
+# the configurations (class and public state, :func:`_fingerprint`) of the models that passed, so that the
+# env, the demo buffer and the recipe check a configuration once between them, however many models they build
+_PASSED: set = set()
 
 
 class TaskModelError(ValueError):
@@ -41,6 +44,16 @@ def _check_tensor(model, member: str, value, shape: tuple, *, floating: bool = T
         _fail(model, member, f"must have the model's dtype {model.dtype}, got {value.dtype}")
     if value.device != model.device:
         _fail(model, member, f"must be on the model's device {model.device}, got {value.device}")
+
+
+def _call(model, member: str, fn, *args):
+    """``fn(*args)``; an exception it raises becomes a :class:`TaskModelError` naming the member."""
+    try:
+        return fn(*args)
+    except TaskModelError:
+        raise
+    except Exception as error:  # noqa: BLE001 - reported with the member it came from
+        raise TaskModelError(f"{type(model).__name__}.{member}: raised {type(error).__name__}: {error}") from error
 
 
 def _positive_int(model, member: str, value) -> None:
@@ -133,10 +146,7 @@ def check_task_model(model: TaskModel, n: int = 32, seed: int = 0) -> None:
     if not bool(torch.isfinite(low).all() & torch.isfinite(high).all() & (low < high).all()):
         _fail(model, "config_low", "must be finite and below config_high on every joint")
     # ------------------------------------------------------------- lipschitz
-    try:
-        bounds = model.lipschitz()
-    except Exception as error:  # noqa: BLE001 - reported with the member it came from
-        _fail(model, "lipschitz", f"raised {type(error).__name__}: {error}")
+    bounds = _call(model, "lipschitz", model.lipschitz)
     if not isinstance(bounds, dict) or set(bounds) != set(reasons):
         got = sorted(bounds) if isinstance(bounds, dict) else type(bounds).__name__
         _fail(model, "lipschitz", f"must return one bound per collision reason {sorted(reasons)}, got {got}")
@@ -145,7 +155,7 @@ def check_task_model(model: TaskModel, n: int = 32, seed: int = 0) -> None:
             _fail(model, "lipschitz", f"bound of {reason!r} must be a positive finite float (metres per radian), got {bound!r}")
     # ------------------------------------------------------------- tasks
     generator = torch.Generator(device=model.device).manual_seed(seed)
-    tasks = model.sample_tasks(n, generator)
+    tasks = _call(model, "sample_tasks", model.sample_tasks, n, generator)
     if not isinstance(tasks, TensorDictBase) or tuple(tasks.batch_size) != (n,):
         _fail(model, "sample_tasks", f"must return a TensorDict of batch size [{n}], got "
                                      f"{getattr(tasks, 'batch_size', type(tasks).__name__)}")
@@ -161,9 +171,9 @@ def check_task_model(model: TaskModel, n: int = 32, seed: int = 0) -> None:
         if not bool(((q >= low) & (q <= high)).all()):
             _fail(model, "sample_tasks", f"a {name} configuration lies outside [config_low, config_high]")
     # ------------------------------------------------------------- achieved goal
-    achieved = model.achieved_goal(start)
+    achieved = _call(model, "achieved_goal", model.achieved_goal, start)
     _check_tensor(model, "achieved_goal", achieved, (n, G))
-    two_dims = model.achieved_goal(start.reshape(1, n, D))
+    two_dims = _call(model, "achieved_goal", model.achieved_goal, start.reshape(1, n, D))
     if tuple(two_dims.shape) != (1, n, G) or not torch.allclose(two_dims[0], achieved, atol=1e-6):
         _fail(model, "achieved_goal", "must map (..., config_dim) to (..., goal_dim) over any leading dims")
     atol = 1e-5 if model.dtype == torch.float32 else 1e-9
@@ -172,26 +182,26 @@ def check_task_model(model: TaskModel, n: int = 32, seed: int = 0) -> None:
     if not torch.allclose(tasks.get(model.desired_goal_key), model.achieved_goal(goal), atol=atol):
         _fail(model, "sample_tasks", "'desired_goal' must be achieved_goal(goal_joint_position)")
     # ------------------------------------------------------------- collision flags
-    flags, flag_goals = model.collision_flags(start, scene)
+    flags, flag_goals = _call(model, "collision_flags", model.collision_flags, start, scene)
     if not isinstance(flags, torch.Tensor) or flags.dtype != torch.uint8:
         _fail(model, "collision_flags", "must return uint8 bit flags (bit k = collision_reasons[k]), got "
                                         f"{getattr(flags, 'dtype', type(flags).__name__)}")
     if tuple(flags.shape) != (n, 1):
         _fail(model, "collision_flags", f"flags must have shape (..., 1), got {tuple(flags.shape)} for {n} configurations")
     _check_tensor(model, "collision_flags (achieved goals)", flag_goals, (n, G))
-    margin = model.motion_margin()
+    margin = _call(model, "motion_margin", model.motion_margin)
     for name, q in (("start", start), ("goal", goal)):
-        if bool((model.collision_flags(q, scene, margin)[0] != 0).any()):
+        if bool((_call(model, "collision_flags", model.collision_flags, q, scene, margin)[0] != 0).any()):
             _fail(model, "sample_tasks", f"a {name} configuration collides with the motion check's margin "
                                          f"{margin}: starts and goals must keep it, so that every motion out of them can be judged")
     # configurations spread over the joint box, near the tasks and anywhere: flags against clearance
     u = torch.rand(n, D, generator=generator, device=model.device, dtype=model.dtype)
     q = torch.cat([low + u * (high - low), start + 0.3 * (u - 0.5) * (high - low)]).clamp(low, high)
     qscene = torch.cat([scene, scene])
-    flags, _ = model.collision_flags(q, qscene)
+    flags, _ = _call(model, "collision_flags", model.collision_flags, q, qscene)
     if int(flags.max()) >= 2 ** len(reasons):
         _fail(model, "collision_flags", f"sets a bit beyond the {len(reasons)} collision_reasons")
-    clearance = model.clearance(q, qscene)
+    clearance = _call(model, "clearance", model.clearance, q, qscene)
     _check_tensor(model, "clearance", clearance, (2 * n, len(reasons)))
     bits = (flags.to(torch.int64) >> torch.arange(len(reasons), device=model.device)) & 1
     decided = clearance.abs() > 1e-5
@@ -200,22 +210,22 @@ def check_task_model(model: TaskModel, n: int = 32, seed: int = 0) -> None:
         _fail(model, "clearance", f"must be negative exactly where collision_flags sets the bit of {reasons[col]!r}; "
                                   f"configuration {row}: clearance {float(clearance[row, col]):.4g}, bit {int(bits[row, col])}")
     wide = {r: 0.05 for r in reasons}
-    widened, _ = model.collision_flags(q, qscene, wide)
+    widened, _ = _call(model, "collision_flags", model.collision_flags, q, qscene, wide)
     if bool(((flags & ~widened) != 0).any()):
         _fail(model, "collision_flags", "a margin must only add collisions (a flag set without it stays set with it)")
     # ------------------------------------------------------------- relabel
     state = tasks.select(*model.state_keys)
     new_goal = model.achieved_goal(goal.flip(0))
-    relabelled = model.relabel(state, new_goal)
+    relabelled = _call(model, "relabel", model.relabel, state, new_goal)
     if not torch.equal(relabelled.get(model.desired_goal_key), new_goal.to(model.dtype)) or not torch.equal(
         relabelled.get(model.config_key), start
     ):
         _fail(model, "relabel", "must set the desired goal and keep the rest of the state")
     # ------------------------------------------------------------- step = transition, then outcome
     action = torch.rand(n, model.action_dim, generator=generator, device=model.device, dtype=model.dtype) * 2 - 1
-    nxt, reward, collision, success, step_flags = model.step(state, action)
-    moved = model.transition(state, action)
-    r2, c2, s2, f2 = model.outcome(state, moved)
+    nxt, reward, collision, success, step_flags = _call(model, "step", model.step, state, action)
+    moved = _call(model, "transition", model.transition, state, action)
+    r2, c2, s2, f2 = _call(model, "outcome", model.outcome, state, moved)
     if not torch.allclose(nxt.get(model.config_key), moved.get(model.config_key), atol=atol):
         _fail(model, "step", "its next configuration must be transition()'s (ReachEnv steps with step, the planner with transition)")
     if not (torch.allclose(reward, r2, atol=atol) and torch.equal(collision, c2) and torch.equal(success, s2)
@@ -224,7 +234,8 @@ def check_task_model(model: TaskModel, n: int = 32, seed: int = 0) -> None:
     # ------------------------------------------------------------- the motion check against dense sampling
     to = moved.get(model.config_key)
     free = ~collision.squeeze(-1)
-    if bool(free.any()):
+    # conservative=False is the paper's subdivision check, which may miss a graze between two samples by design
+    if model.conservative and bool(free.any()):
         k = 16
         t = torch.linspace(0, 1, k * max(1, math.ceil(float((to - start).abs().amax()) / model.motion_resolution)) + 1,
                            dtype=model.dtype, device=model.device).view(-1, 1, 1)
@@ -245,9 +256,79 @@ def check_task_model(model: TaskModel, n: int = 32, seed: int = 0) -> None:
         _fail(model, "to", f"must move every tensor of the model; still on {model.device} after to('meta'): {stay[:4]}")
 
 
+class _Opaque(Exception):
+    """A value :func:`_fingerprint` cannot summarise."""
+
+
+def _fingerprint(value, seen: frozenset = frozenset(), depth: int = 0):
+    """A hashable summary of a value's content: numbers and strings as they are, tensors and arrays by their
+    bytes, containers and objects by their public attributes. Raises :class:`_Opaque` where it cannot
+    summarise (an object without attributes whose repr holds an address, a cycle, nesting deeper than 8)."""
+    if value is None or isinstance(value, (bool, int, float, complex, str, bytes, torch.dtype, torch.device)):
+        return value
+    if isinstance(value, slice):
+        return ("slice", value.start, value.stop, value.step)
+    if id(value) in seen or depth > 8:
+        raise _Opaque(type(value).__name__)
+    inner = seen | {id(value)}
+    if isinstance(value, torch.Tensor):
+        value = value.detach()
+        if value.device.type == "meta":
+            return ("tensor", tuple(value.shape), value.dtype, "meta")
+        data = value.to("cpu").contiguous().view(-1).view(torch.uint8).numpy().tobytes() if value.numel() else b""
+        return ("tensor", tuple(value.shape), value.dtype, value.device.type, hashlib.sha1(data).hexdigest())
+    if isinstance(value, np.ndarray):
+        return ("array", value.shape, str(value.dtype), hashlib.sha1(np.ascontiguousarray(value).tobytes()).hexdigest())
+    if isinstance(value, type):
+        return ("class", value)
+    if isinstance(value, (types.FunctionType, types.MethodType, types.BuiltinFunctionType)):
+        return ("function", getattr(value, "__module__", None), getattr(value, "__qualname__", repr(value)))
+    if isinstance(value, (list, tuple, set, frozenset)):
+        items = [_fingerprint(v, inner, depth + 1) for v in value]
+        if isinstance(value, (set, frozenset)):
+            items = sorted(items, key=repr)
+        return (type(value).__name__, *items)
+    if isinstance(value, dict):
+        return ("dict", *sorted(((repr(k), _fingerprint(v, inner, depth + 1)) for k, v in value.items()), key=repr))
+    if isinstance(value, torch.nn.Module):
+        state = {**dict(value.named_parameters()), **dict(value.named_buffers())}
+        public = {k: v for k, v in vars(value).items() if not k.startswith("_") and k != "training"}
+        return ("module", type(value), _fingerprint(state, inner, depth + 1), _fingerprint(public, inner, depth + 1))
+    if hasattr(value, "__dict__"):
+        public = {k: v for k, v in vars(value).items() if not k.startswith("_")}
+        return ("object", type(value), _fingerprint(public, inner, depth + 1))
+    text = repr(value)
+    if " at 0x" in text:
+        raise _Opaque(type(value).__name__)
+    return ("repr", type(value), text)
+
+
 def ensure_checked(model: TaskModel) -> None:
-    """:func:`check_task_model` once per model object (what the env, the demo buffer and the recipe call)."""
-    if model in _CHECKED:
+    """:func:`check_task_model` once per model configuration: what :class:`~torchrl_silp.envs.ReachEnv`,
+    :class:`~torchrl_silp.data.DemoReplayBuffer` and the recipes call on the model they are given.
+
+    A configuration is the model's class and the content of its public attributes (numbers, strings,
+    tensors by value, the robot's buffers, ...): a second model built with the same arguments is not
+    checked again, a model whose public state changed is. Private attributes (``_name``) are taken to be
+    caches of the public ones. A model whose state cannot be summarised is checked every time.
+
+    Raises:
+        TaskModelError: as :func:`check_task_model`.
+
+    Examples:
+        >>> from torchrl_silp.models import UR5eReach
+        >>> from torchrl_silp.models.check import ensure_checked
+        >>> ensure_checked(UR5eReach())  # checked
+        >>> ensure_checked(UR5eReach())  # the same configuration: not checked again
+    """
+    if not isinstance(model, TaskModel):
+        raise TypeError(f"model must be a torchrl_silp.models.TaskModel, got {type(model).__name__}")
+    try:
+        key = (type(model), _fingerprint({k: v for k, v in vars(model).items() if not k.startswith("_")}))
+    except _Opaque:
+        key = None
+    if key is not None and key in _PASSED:
         return
     check_task_model(model)
-    _CHECKED.add(model)
+    if key is not None:
+        _PASSED.add(key)

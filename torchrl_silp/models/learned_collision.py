@@ -165,6 +165,11 @@ class LearnedEdgeCheck:
         self.net = net
         self.threshold = check_probability(threshold, name="threshold")
 
+    def to(self, device) -> "LearnedEdgeCheck":
+        """Move the net to ``device`` (the task model's ``to`` calls it); returns the check."""
+        self.net.to(device)
+        return self
+
     def __call__(self, model: TaskModel, config: torch.Tensor, scene: TensorDictBase, margin) -> torch.Tensor:
         with torch.no_grad():
             prob = torch.sigmoid(self.net(_features(model, config, scene).float()))

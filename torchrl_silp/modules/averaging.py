@@ -29,7 +29,6 @@ it is no TensorDict module (it has no ``in_keys`` / ``out_keys``): give TorchRL
 
 from __future__ import annotations
 
-import torch
 from torch import nn
 from torch.nn.parameter import UninitializedParameter
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
