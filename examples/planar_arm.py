@@ -8,7 +8,7 @@ A configuration collides when a link meets a disc, or the last link meets the fi
 Train SILP+ on it with the main job, no file of the repository changed (run from the repo root,
 where ``examples`` is importable)::
 
-    python recipes/sac_silp.py env=custom env.model._target_=examples.planar_arm.PlanarArmReach env.model.n_discs=3
+    PYTHONPATH=. python recipes/sac_silp.py env=custom env.model._target_=examples.planar_arm.PlanarArmReach env.model.n_discs=3
 
 Examples:
     >>> import torch
@@ -104,6 +104,15 @@ class PlanarArmReach(TaskModel):
         steps = self.links.to(config.dtype).unsqueeze(-1) * torch.stack([angle.cos(), angle.sin()], -1)
         points = torch.cumsum(steps, -2)
         return torch.cat([torch.zeros_like(points[..., :1, :]), points], -2)
+
+    def draw_scene(self, ax, state: TensorDictBase) -> None:
+        """The discs and the arm at ``state`` on a matplotlib axes (what the rollout picture calls)."""
+        from matplotlib.patches import Circle
+
+        for x, y, r in state.get("discs").tolist():
+            ax.add_patch(Circle((x, y), r, facecolor=(0.85, 0.25, 0.2, 0.45), edgecolor=(0.55, 0.1, 0.08, 0.9)))
+        joints = self.joints(state.get(self.config_key)).tolist()
+        ax.plot(*zip(*joints), color="#5f7f9f", linewidth=3, solid_capstyle="round", label="arm (last state)")
 
     def achieved_goal(self, config: torch.Tensor) -> torch.Tensor:
         return self.joints(config)[..., -1, :]

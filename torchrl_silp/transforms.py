@@ -1,4 +1,5 @@
-"""SILP+ as TorchRL transforms: collision handling, the goal-relative input, perception noise.
+"""SILP+ as TorchRL transforms: collision handling, the goal-relative input, perception noise, and the
+flat observation of named entries of any trailing shape.
 
 Each works on any env whose base env holds a :class:`~torchrl_silp.models.TaskModel`
 (``env.base_env.model``) and keeps its state under the model's names, such as
@@ -12,11 +13,11 @@ import math
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Binary, Composite, Unbounded
-from torchrl.envs import Transform
+from torchrl.envs import CatTensors, Transform
 
 from torchrl_silp.validation import check_choice, check_nonnegative_float
 
-__all__ = ["CollisionHandling", "GoalRelative", "PerceptionNoise", "COLLISION_TYPES"]
+__all__ = ["CollisionHandling", "GoalRelative", "PerceptionNoise", "FlatCatTensors", "COLLISION_TYPES"]
 
 COLLISION_TYPES = (0, 1, 2)
 
@@ -219,3 +220,55 @@ class PerceptionNoise(_ModelTransform):
             shape=(*batch, size), dtype=parts[0].dtype, device=observation_spec.device
         )
         return observation_spec
+
+
+class FlatCatTensors(CatTensors):
+    """:class:`~torchrl.envs.CatTensors` over entries of any trailing shape: each is flattened after its
+    batch dims, in the order given, then concatenated along the last dim (what ``reshape(*batch, -1)``
+    and ``torch.cat(..., -1)`` give).
+
+    Args:
+        shapes: each input key's trailing shape, e.g. ``{"joint_position": (3,), "discs": (2, 3)}``.
+        out_key: where the flat tensor goes.
+        del_keys: drop the inputs (False: keep them, as the task-model components read them).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> cat = FlatCatTensors({"q": (3,), "discs": (2, 3)}, out_key="observation")
+        >>> td = cat(TensorDict({"q": torch.zeros(4, 3), "discs": torch.ones(4, 2, 3)}, batch_size=[4]))
+        >>> td["observation"].shape, td["observation"][0, 3:].tolist()
+        (torch.Size([4, 9]), [1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+    """
+
+    def __init__(self, shapes: dict, out_key: str = "observation", del_keys: bool = False):
+        self.shapes = {key: tuple(int(d) for d in shape) for key, shape in shapes.items()}
+        super().__init__(in_keys=list(self.shapes), out_key=out_key, del_keys=del_keys, sort=False)
+
+    def _flat(self, key, value: torch.Tensor) -> torch.Tensor:
+        shape = self.shapes[key]
+        return value.reshape(*value.shape[: value.ndim - len(shape)], math.prod(shape))  # (an empty batch too)
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        missing = [key for key in self.in_keys if next_tensordict.get(key, None) is None]
+        if missing:
+            raise KeyError(f"{type(self).__name__}: the tensordict has no {missing}")
+        flat = [self._flat(key, next_tensordict.get(key)) for key in self.in_keys]
+        next_tensordict.set(self.out_keys[0], torch.cat(flat, dim=-1))
+        if self._del_keys:
+            next_tensordict.exclude(*self.keys_to_exclude, inplace=True)
+        return next_tensordict
+
+    forward = _call
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        spec0 = observation_spec[self.in_keys[0]]
+        batch = spec0.shape[: len(spec0.shape) - len(self.shapes[self.in_keys[0]])]
+        size = sum(math.prod(shape) for shape in self.shapes.values())
+        observation_spec[self.out_keys[0]] = Unbounded(shape=(*batch, size), dtype=spec0.dtype, device=spec0.device)
+        if self._del_keys:
+            for key in self.keys_to_exclude:
+                if key in observation_spec.keys(True):
+                    del observation_spec[key]
+        return observation_spec
+

@@ -18,6 +18,7 @@ import math
 import os
 from collections.abc import Sequence
 
+import matplotlib.patches
 import numpy as np
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -25,10 +26,11 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
+from torchrl_silp.models.base import TaskModel
 from torchrl_silp.models.ur5e import UR5eReach
 from torchrl_silp.robot import UR5e
 
-__all__ = ["draw_scene", "render_rgb", "save_rollout_png", "arm_polygons"]
+__all__ = ["draw_scene", "render_rgb", "save_rollout_png", "save_task_rollout_png", "arm_polygons"]
 
 # Scene box drawn by default: the TCP workspace of the task plus the arm's
 # base, so that panels of different episodes share one scale.
@@ -410,7 +412,8 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
 
     Args:
         env_or_robot: a :class:`~torchrl_silp.robot.UR5e`, or an env or model holding one
-            (``.robot`` or ``.model.robot``).
+            (``.robot`` or ``.model.robot``): the arm is drawn. Any other task model (or an env
+            holding one): :func:`save_task_rollout_png` draws its achieved-goal paths.
         rollout: TensorDict with batch ``[B, T]`` or ``[T]`` (more leading dims
             are flattened) holding the named state (``"joint_position"``,
             ``"achieved_goal"``, ``"obstacle"``, ``"desired_goal"``) at the root and the
@@ -440,10 +443,15 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
     robot = env_or_robot
     for attr in ("model", "robot"):
         if not isinstance(robot, UR5e) and hasattr(robot, attr):
+            if isinstance(robot, TaskModel) and not isinstance(getattr(robot, attr), UR5e):
+                break
             robot = getattr(robot, attr)
     if not isinstance(robot, UR5e):
+        model = env_or_robot if isinstance(env_or_robot, TaskModel) else getattr(env_or_robot, "model", None)
+        if isinstance(model, TaskModel):  # a task without a UR5e: its achieved-goal paths
+            return save_task_rollout_png(model, rollout, path, max_panels, dpi=dpi)
         raise TypeError(
-            "env_or_robot must be a torchrl_silp.UR5e or an env with a UR5e `robot` attribute, "
+            "env_or_robot must be a torchrl_silp.UR5e, a TaskModel, or an env holding one (`robot` or `model`), "
             f"got {type(env_or_robot).__name__}"
         )
     if not isinstance(rollout, TensorDictBase):
@@ -512,6 +520,114 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
             title=title,
         )
     fig.subplots_adjust(left=0.0, right=0.95, bottom=0.02, top=0.95, wspace=0.08, hspace=0.12)
+    handles, labels = fig.axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower right", fontsize=7, frameon=False)
+    fig.savefig(path, format="png")
+    return path
+
+
+def save_task_rollout_png(model: TaskModel, rollout, path: str | os.PathLike, max_panels: int = 4, *,
+                          dpi: int = 100):
+    """One panel per episode of any task model's rollout, drawn in its goal space.
+
+    Each panel shows the achieved-goal path from the episode's start, the desired goal with a circle
+    (sphere) of the model's ``success_distance``, and the scene's boxes where the model gives them
+    (:meth:`~torchrl_silp.models.TaskModel.scene_boxes`): in 2-D for a 2-D goal space, in 3-D for
+    three or more dimensions (the first three). A model with a ``draw_scene(ax, state)`` method draws
+    the rest itself (its obstacles, its robot at ``state``: the episode's last reached state, a
+    TensorDict without batch dims). Episodes are cut as in :func:`save_rollout_png`.
+
+    Args:
+        model: the task model the rollout ran on.
+        rollout: TensorDict ``[B, T]`` or ``[T]`` holding the model's achieved and desired goal and
+            its scene at the root, the achieved goal under ``"next"``; ``("next", "done")``,
+            ``"reward"``, ``"success"`` and ``"collision"`` when present.
+        path: where to write the PNG.
+
+    Returns:
+        ``path``, as given.
+
+    Examples:
+        >>> import os, tempfile, torch
+        >>> from torchrl_silp import PandaReach, ReachEnv
+        >>> env = ReachEnv(PandaReach(), num_envs=2, seed=0)
+        >>> _ = torch.manual_seed(0)
+        >>> out = save_task_rollout_png(env.model, env.rollout(5), os.path.join(tempfile.mkdtemp(), "r.png"))
+        >>> os.path.getsize(out) > 0
+        True
+    """
+    from tensordict import TensorDictBase
+
+    if not isinstance(model, TaskModel):
+        raise TypeError(f"model must be a torchrl_silp.models.TaskModel, got {type(model).__name__}")
+    if not isinstance(rollout, TensorDictBase):
+        raise TypeError(f"rollout must be a TensorDict, got {type(rollout).__name__}")
+    max_panels = _positive_int(max_panels, "max_panels")
+    dpi = _positive_int(dpi, "dpi", 10)
+    if rollout.batch_dims < 1 or rollout.batch_size.numel() == 0:
+        raise ValueError(f"rollout must have batch [B, T] or [T] with T >= 1, got {tuple(rollout.batch_size)}")
+    achieved_key, desired_key = model.achieved_goal_key, model.desired_goal_key
+    needed = (achieved_key, desired_key, ("next", achieved_key), *model.scene_keys)
+    missing = [k for k in needed if k not in rollout.keys(True)]
+    if missing:
+        raise ValueError(f"rollout is missing the keys {missing}")
+    td = rollout.reshape(-1, rollout.batch_size[-1])
+    shape = tuple(td.batch_size)
+
+    def array(key):
+        return td[key].detach().to("cpu", torch.float64).numpy()
+
+    start, desired, reached = array(achieved_key), array(desired_key), array(("next", achieved_key))
+    boxes = model.scene_boxes(td.select(*model.scene_keys))
+    boxes = None if boxes is None else boxes.detach().to("cpu", torch.float64).numpy()
+
+    def optional(key, fill):
+        if ("next", key) in td.keys(True):
+            return td["next", key].detach().to("cpu").numpy().reshape(shape)
+        return np.full(shape, fill)
+
+    done = optional("done", False).astype(bool)
+    reward = optional("reward", np.nan).astype(np.float64)
+    success = optional("success", False).astype(bool)
+    collision = optional("collision", False).astype(bool)
+    dims = min(start.shape[-1], 3)
+    episodes = _episodes(done)[:max_panels]
+    n = len(episodes)
+    ncols = math.ceil(math.sqrt(n))
+    nrows = math.ceil(n / ncols)
+    fig = Figure(figsize=(4.0 * ncols, 4.0 * nrows), dpi=dpi)
+    FigureCanvasAgg(fig)
+    radius = float(getattr(model, "success_distance", 0.0))
+    for i, (b, first, last) in enumerate(episodes):
+        ax = fig.add_subplot(nrows, ncols, i + 1, **({"projection": "3d"} if dims == 3 else {}))
+        path_pts = np.concatenate([start[b, first, None], reached[b, first:last + 1]])[:, :dims]
+        goal = desired[b, first, :dims]
+        if boxes is not None:
+            for box in boxes[b, first]:
+                lo, hi = box[0::2][:dims], box[1::2][:dims]
+                if dims == 3:
+                    ax.add_collection3d(Poly3DCollection(_box_faces(lo, hi), facecolor=_OBSTACLE_COLOUR,
+                                                         edgecolor=_OBSTACLE_EDGE, linewidths=0.5))
+                else:
+                    ax.add_patch(matplotlib.patches.Rectangle(lo, *(hi - lo), facecolor=_OBSTACLE_COLOUR,
+                                                              edgecolor=_OBSTACLE_EDGE))
+        draw = getattr(model, "draw_scene", None)
+        if callable(draw):
+            draw(ax, td["next"][b, last].select(*model.state_keys).to("cpu"))
+        ax.plot(*path_pts.T, color="#1f5fa8", marker=".", markersize=3, linewidth=1.2, label="achieved goal")
+        ax.scatter(*path_pts[0], color="#2a9d3f", s=25, label="start")
+        ax.scatter(*goal, color="#d4a017", marker="*", s=90, label="desired goal")
+        if dims == 2 and radius:
+            ax.add_patch(matplotlib.patches.Circle(goal, radius, fill=False, color="#d4a017", linewidth=0.8))
+        if dims == 2:
+            ax.set_aspect("equal", adjustable="datalim")
+        end = "success" if success[b, last] else ("truncated" if done[b, last] else "running")
+        n_coll = int(collision[b, first:last + 1].sum())
+        title = f"env {b}: {last - first + 1} steps, return {np.nansum(reward[b, first:last + 1]):.1f}\n{end}"
+        if n_coll:
+            title += f", {n_coll} collision{'s' if n_coll > 1 else ''}"
+        ax.set_title(title, fontsize=8)
+        ax.tick_params(labelsize=6)
     handles, labels = fig.axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower right", fontsize=7, frameon=False)
     fig.savefig(path, format="png")

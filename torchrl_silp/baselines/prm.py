@@ -616,7 +616,7 @@ def collect_prm_demonstrations(
         max_steps, device, progress, edge_step, simplify: as in :func:`evaluate_prm`.
         observation_transform: builds the networks' inputs from a named state (a TorchRL
             transform or any callable ``td -> td``); the model's
-            :class:`~torchrl.envs.CatTensors` (``"observation"``) by default.
+            :class:`~torchrl_silp.transforms.FlatCatTensors` (``"observation"``) by default.
         observation_keys: the keys ``observation_transform`` writes that the transitions keep.
 
     Returns:

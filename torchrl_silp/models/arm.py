@@ -86,6 +86,11 @@ class ArmReach(TaskModel):
     def config_high(self) -> torch.Tensor:
         return self.robot.joint_high
 
+    def scene_boxes(self, scene) -> torch.Tensor:
+        """The ``num_boxes`` obstacle boxes ``(..., num_boxes, 6)`` (the goal space is the TCP's xyz)."""
+        obstacle = scene.get("obstacle")
+        return obstacle.reshape(*obstacle.shape[:-1], self.num_boxes, 6)
+
     def achieved_goal(self, config: torch.Tensor) -> torch.Tensor:
         """The TCP position ``(..., 3)`` (metres, base frame)."""
         return self.robot.fk(config)

@@ -91,7 +91,7 @@ class SILPLoss(LossModule):
             it has none).
         observation_transform: builds the actor's inputs (``"observation"``, ...) from a
             named state during the look-ahead, as the env's transforms do; the model's
-            :class:`~torchrl.envs.CatTensors` by default.
+            :class:`~torchrl_silp.transforms.FlatCatTensors` by default.
         demo_rows: how the BC term finds the demonstration rows. ``"select"``
             (default) gathers them (``nonzero``: one host sync and a shape that
             depends on the data), so the actor and the filter run on those rows

@@ -108,7 +108,7 @@ def paths_to_demonstrations(
 
     The transitions hold the model's named state keys at the root and under
     ``"next"``; ``observation_transform`` (a TorchRL transform or any callable
-    ``td -> td``; the model's :class:`~torchrl.envs.CatTensors` by default)
+    ``td -> td``; the model's :class:`~torchrl_silp.transforms.FlatCatTensors` by default)
     then writes what the networks read (``"observation"``, ...), on both, the
     way the env's transforms do for interaction data.
 
