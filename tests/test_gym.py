@@ -13,8 +13,7 @@ from tensordict import TensorDict
 
 import torchrl_silp  # noqa: F401  (registers the id)
 from torchrl_silp import CollisionHandling, CollisionReason, UR5eReach, UR5eReachEnv
-from torchrl_silp.envs import ENV_ID, UR5eReachGymEnv
-from torchrl_silp.envs import gym as gym_module
+from torchrl_silp.envs import ENV_ID, PANDA_ENV_ID, UR5eReachGymEnv
 from torchrl_silp.envs.gym import ReachGymEnv
 
 
@@ -58,11 +57,14 @@ def test_check_env_via_registered_id(render_mode):
 
 
 def test_registration_is_idempotent():
+    import importlib
+
     with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        gym_module._register()
-        gym_module._register()
+        warnings.simplefilter("error")  # gymnasium warns when an id is registered twice
+        importlib.reload(torchrl_silp)
+        importlib.reload(torchrl_silp)
     assert gym.spec(ENV_ID).entry_point == "torchrl_silp.envs.gym:UR5eReachGymEnv"
+    assert gym.spec(PANDA_ENV_ID).entry_point == "torchrl_silp.envs.gym:PandaReachGymEnv"
 
 
 def test_make_passes_kwargs():

@@ -1,6 +1,6 @@
 """Gymnasium twins of the TorchRL reach envs (numpy in, numpy out).
 
-Importing this module registers the ids ``torchrl_silp/UR5eReach-v0`` and ``torchrl_silp/PandaReach-v0``.
+Importing ``torchrl_silp`` registers their ids ``torchrl_silp/UR5eReach-v0`` and ``torchrl_silp/PandaReach-v0``.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from gymnasium import spaces
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import step_mdp
 
+from torchrl_silp import GYM_IDS
 from torchrl_silp.envs.reach import ReachEnv
 from torchrl_silp.models.base import TaskModel
 from torchrl_silp.models.panda import PandaReach
@@ -23,8 +24,7 @@ from torchrl_silp.transforms import CollisionHandling
 
 __all__ = ["ReachGymEnv", "UR5eReachGymEnv", "PandaReachGymEnv", "ENV_ID", "PANDA_ENV_ID"]
 
-ENV_ID = "torchrl_silp/UR5eReach-v0"
-PANDA_ENV_ID = "torchrl_silp/PandaReach-v0"
+ENV_ID, PANDA_ENV_ID = GYM_IDS  # registered by the package's import
 
 
 class ReachGymEnv(gymnasium.Env):
@@ -247,15 +247,3 @@ class PandaReachGymEnv(ReachGymEnv):
 
     def __init__(self, max_steps: int = 50, collision_type: int = 2, num_boxes: int = 1):
         super().__init__(PandaReach(num_boxes=num_boxes), max_steps, collision_type)
-
-
-def _register() -> None:
-    # A second import (reload, or a test that re-imports) must not register
-    # twice: gymnasium warns about overriding an existing id.
-    if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point="torchrl_silp.envs.gym:UR5eReachGymEnv")
-    if PANDA_ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=PANDA_ENV_ID, entry_point="torchrl_silp.envs.gym:PandaReachGymEnv")
-
-
-_register()
