@@ -17,65 +17,25 @@ import time
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
 from torchrl_silp.data import MixedReplay, cut_episodes
 from torchrl_silp.recipes.builders import make_actor_critic, make_loss
+from torchrl_silp.recipes.preflight import (  # noqa: F401 - the run-folder checks, re-exported
+    RESUME_FIELDS, RESUME_MODES, RESUME_PRESENCE_FIELDS, RESUME_RETIRED_FIELDS, find_checkpoint, check_run_folder,
+    checkpoint_exists,
+)
 
 
-# fields whose change makes a checkpoint's networks or buffers the wrong shape or meaning
-RESUME_FIELDS = ("algorithm", "env.name", "env.model", "env.num_envs", "env.max_steps", "network",
-                 "replay_buffer.size", "replay_buffer.demo_size", "replay_buffer.her", "silp.bc",
-                 "source", "source_run_dir")
-# fields whose presence (set or null) must match; their value may change on resume
-RESUME_PRESENCE_FIELDS = ("eval.actor_average_decay",)
-# fields an older run's config.yaml may hold that no longer exist: ignored on resume, with a notice
-RESUME_RETIRED_FIELDS = ("network.onednn_linear",)
-RESUME_MODES = (False, True, "must")
 
 
 def check_resume(cfg, run_dir: Path) -> bool:
-    """Whether ``cfg.resume`` finds a checkpoint in ``run_dir``; refuses a config that differs from the run's own.
-
-    A resume whose config differs from the checkpointed run's ``config.yaml`` in a field of
-    :data:`RESUME_FIELDS` raises a ValueError naming the field, before anything is written.
-    ``resume=true`` with no checkpoint says so and the run starts fresh; ``resume=must`` refuses.
-    """
-    resume = cfg.get("resume", False)  # prm.py has no resume
-    if resume not in RESUME_MODES:
-        raise ValueError(f"resume must be true, false or 'must', got {resume!r}")
-    if not resume:
-        return False
-    if not checkpoint_exists(run_dir / "checkpoint"):
-        if resume == "must":
-            raise FileNotFoundError(f"resume=must, but {run_dir / 'checkpoint'} holds no checkpoint")
-        print(f"resume=true, but {run_dir / 'checkpoint'} holds no checkpoint: starting a new run")
-        return False
-    saved_path = run_dir / "config.yaml"
-    if saved_path.exists():
-        saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
-        now = OmegaConf.to_container(cfg, resolve=True)
-        for field in RESUME_RETIRED_FIELDS:
-            parent, _, leaf = field.rpartition(".")
-            node = _dotted(saved, parent)
-            if isinstance(node, dict) and leaf in node:
-                print(f"resume: {field}={node.pop(leaf)!r} in {saved_path} no longer exists and is ignored")
-        for field in (*RESUME_FIELDS, *RESUME_PRESENCE_FIELDS):
-            old, new = _dotted(saved, field), _dotted(now, field)
-            if field in RESUME_PRESENCE_FIELDS:
-                old, new = ("set" if old is not None else None), ("set" if new is not None else None)
-            if old != new:
-                raise ValueError(f"resume: {field} is {new!r} here but {old!r} in the checkpointed run "
-                                 f"({saved_path}); resume with the run's own config or use another run_dir")
-    return True
-
-
-def _dotted(tree, field: str):
-    for key in field.split("."):
-        if not isinstance(tree, dict) or key not in tree:
-            return None
-        tree = tree[key]
-    return tree
+    """Whether ``cfg`` resumes from ``run_dir``'s checkpoint (:func:`~torchrl_silp.recipes.preflight.check_run_folder`
+    on ``cfg`` with that folder): refuses a fresh start over a checkpoint, ``resume=must`` without one, and a
+    resume whose config differs from the checkpointed run's in a field of ``RESUME_FIELDS``."""
+    if Path(cfg.run_dir) != Path(run_dir):
+        cfg = cfg.copy()
+        cfg.run_dir = str(run_dir)
+    return check_run_folder(cfg)
 
 
 def save_checkpoint(path: Path, state: dict, buffers: MixedReplay) -> None:
@@ -95,23 +55,15 @@ def save_checkpoint(path: Path, state: dict, buffers: MixedReplay) -> None:
         shutil.rmtree(old)
 
 
-def _checkpoint_dir(path: Path) -> Path | None:
-    # a run killed between the two renames of save_checkpoint left only ".old"
-    path = Path(path)
-    for candidate in (path, path.with_name(path.name + ".old")):
-        if (candidate / "state.pt").exists():
-            return candidate
-    return None
-
-
 class StopRequest:
-    """SIGTERM / SIGINT while training: the loop finishes its batch, checkpoints and stops.
+    """SIGTERM / SIGINT while training: the loop stops at its next update or collection boundary,
+    checkpoints and ends.
 
     Used as a context manager around the loop (the handlers are those of the main thread only;
     elsewhere, e.g. in a thread of a Ray worker, nothing is installed and the default
     behaviour stays). A second signal gets the previous handler: it stops at once.
     :meth:`exit` then ends the process the way the signal would have: ``KeyboardInterrupt``
-    for SIGINT, exit status 143 for SIGTERM.
+    for SIGINT (a script's entry point turns it into exit status 130), exit status 143 for SIGTERM.
     """
 
     SIGNALS = (signal.SIGTERM, signal.SIGINT)
@@ -136,7 +88,7 @@ class StopRequest:
     def _handle(self, signum, frame) -> None:
         self.signum = signum
         self._restore()
-        print(f"{signal.Signals(signum).name}: stopping after this batch with a checkpoint "
+        print(f"\n{signal.Signals(signum).name}: stopping at the next update with a checkpoint "
               "(send it again to stop at once)", flush=True)
 
     @property
@@ -193,17 +145,12 @@ def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, a
 
 def load_checkpoint(path: Path, buffers: MixedReplay) -> dict:
     """The state a checkpoint holds; its buffers are loaded into ``buffers``."""
-    found = _checkpoint_dir(path)
+    found = find_checkpoint(path)
     if found is None:
         raise FileNotFoundError(f"no checkpoint under {path}")
     state = torch.load(found / "state.pt", weights_only=False)
     buffers.loads(found / "buffers")
     return state
-
-
-def checkpoint_exists(path: Path) -> bool:
-    """Whether ``path`` (or what a save killed midway left of it) holds a checkpoint."""
-    return _checkpoint_dir(path) is not None
 
 
 def load_trained_networks(cfg, model, env, path: Path, device) -> tuple:
@@ -213,7 +160,7 @@ def load_trained_networks(cfg, model, env, path: Path, device) -> tuple:
     actor's parameters when the run kept one (``eval.actor_average_decay``),
     else the online actor; ``loss`` holds the online networks (critic included).
     """
-    found = _checkpoint_dir(path)
+    found = find_checkpoint(path)
     if found is None:
         raise FileNotFoundError(f"no checkpoint under {path}")
     actor, critic = make_actor_critic(cfg, model, env, device)

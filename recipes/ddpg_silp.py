@@ -3,15 +3,7 @@
     python recipes/ddpg_silp.py
 """
 
-import hydra
+if __name__ == "__main__":  # the command line is checked before the recipe is imported
+    from torchrl_silp.recipes.preflight import main
 
-from torchrl_silp.recipes.sac_silp import train
-
-
-@hydra.main(version_base="1.3", config_path="config", config_name="ddpg_silp")
-def main(cfg):
-    return train(cfg)
-
-
-if __name__ == "__main__":
-    main()
+    main("ddpg_silp", "torchrl_silp.recipes.sac_silp:train")

@@ -19,7 +19,9 @@ import torch
 def new_counters() -> dict:
     """The loop's counters at the start of a run (a resumed run restores its own)."""
     return {"frames": 0, "episodes": 0, "iterations": 0, "updates": 0, "collisions": 0, "swept_collisions": 0,
-            "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None,
+            "train_wall_s": 0.0, "planning_s": 0.0, "time_to_095_s": None, "evaluations": 0,
+            # gradient updates of the last batch a stop cut short: made first on resume
+            "updates_owed": 0,
             # the BC filter's kept share of demo rows, summed over the updates since the last evaluation point
             "bc_kept_sum": 0.0, "bc_kept_updates": 0}
 
@@ -53,6 +55,7 @@ def batch_metrics(batch, losses: list, counters: dict, demos_stored: int) -> dic
 
 
 def plot_learning_curve(history: list[dict], path: Path, label: str) -> Path:
+    """The validation success rate of each periodic evaluation against training episodes (redrawn at each one)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -62,13 +65,15 @@ def plot_learning_curve(history: list[dict], path: Path, label: str) -> Path:
     if history:
         ax.plot([h["episodes"] for h in history], [h["success_rate"] for h in history], marker="o", label=label)
     ax.set_xlabel("training episodes")
-    ax.set_ylabel("test success rate")
+    ax.set_ylabel("validation success rate")
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    tmp = Path(path).with_name(Path(path).stem + ".tmp.png")
+    fig.savefig(tmp, dpi=120)  # then renamed: a reader never sees half a picture
     plt.close(fig)
+    os.replace(tmp, path)
     return path
 
 
@@ -91,14 +96,43 @@ def summarize(cfg, counters: dict, final: dict, demos_stored: int, validation: d
         "planning_share": counters["planning_s"] / max(counters["train_wall_s"], 1e-9),
         "time_to_095_s": counters["time_to_095_s"], "rollout_time_per_episode_s": final["time_per_rollout_s"],
         "demos_stored": demos_stored,
-        # demonstrations were on and the planner stored none: SILP+ ran as plain RL
-        "warning": "silp.demos is on but no demonstration was stored" if cfg.silp.demos and not demos_stored else None,
+        "warning": training_warning(cfg, counters, demos_stored),
     }
 
 
+def training_warning(cfg, counters: dict, demos_stored: int) -> str | None:
+    """What the run did not train, in words, or None: no gradient update at all (the budget ended in the
+    random warm-up), or SILP+ with no demonstration stored (it ran as plain RL)."""
+    problems = []
+    if counters["updates"] == 0:
+        problems.append(f"no gradient update was made: the policy is untrained (the run ended at {counters['frames']} "
+                        f"frames, within collector.init_random_frames={cfg.collector.init_random_frames})")
+    if cfg.silp.demos and not demos_stored:
+        problems.append("silp.demos is on but no demonstration was stored: SILP+ ran as plain RL")
+    if counters["updates"] and not counters.get("evaluations", 1):
+        problems.append(f"no periodic evaluation ran (eval.every_frames={cfg.eval.every_frames} is past the budget): "
+                        "the learning curve holds the final evaluation only")
+    return "; ".join(problems) or None
+
+
+def _strict(value):
+    """``value`` with NaN and infinities as None, tensors and numpy scalars as floats: JSON without NaN."""
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict(v) for v in value]
+    if isinstance(value, torch.Tensor) or type(value).__module__ == "numpy":
+        value = value.item() if hasattr(value, "item") else float(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def write_json(path: Path, payload: dict) -> None:
-    """``payload`` as indented JSON (tensors and numpy scalars as floats)."""
-    Path(path).write_text(json.dumps(payload, indent=2, default=float))
+    """``payload`` as indented, strict JSON (NaN as ``null``; tensors and numpy scalars as numbers), written atomically."""
+    tmp = Path(path).with_name(Path(path).name + ".tmp")
+    tmp.write_text(json.dumps(_strict(payload), indent=2, allow_nan=False))
+    os.replace(tmp, path)
 
 
 def write_results(run_dir: Path, summary: dict, history: list[dict]) -> None:

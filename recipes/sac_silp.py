@@ -4,18 +4,26 @@
     python recipes/sac_silp.py env=panda_reach      # the Franka Panda reach task
     python recipes/sac_silp.py seed=1 resume=true   # continue a killed run
     python recipes/sac_silp.py method=sac           # plain SAC (see config/method/)
+    python recipes/sac_silp.py --config-dir mine env=my_task   # a task of your own (docs/your_own_task.md)
 
 The loop is here; the builders live in ``builders.py`` (the gradient step in ``update.py``,
 checkpoints in ``checkpointing.py``, what a run logs and leaves in ``metrics.py``), the typed
-config in ``schema.py`` and ``config/``; the method in the package.
+config in ``schema.py`` and ``config/``, its checks in ``preflight.py``; the method in the package.
+Run as a script, the command line is composed and checked (:func:`preflight.main`) before anything
+heavy is imported or any file written.
 """
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # check the command line first; the module then runs as torchrl_silp.recipes.sac_silp
+    from torchrl_silp.recipes.preflight import main
+
+    main("sac_silp", "torchrl_silp.recipes.sac_silp:train")
+    raise SystemExit(0)
+
 import time
 import warnings
 
-import hydra
 import torch
 import tqdm
 from omegaconf import DictConfig, OmegaConf
@@ -24,7 +32,6 @@ from torchrl.record.loggers import get_logger
 
 from torchrl_silp.data import EpisodeAssembler
 from torchrl_silp.eval import evaluate
-from torchrl_silp.models import UR5eReach
 from torchrl_silp.modules import make_averaged_actor
 from torchrl_silp.recipes import schema
 from torchrl_silp.recipes.builders import (
@@ -35,27 +42,29 @@ from torchrl_silp.recipes.checkpointing import StopRequest, checkpoint_exists, r
 from torchrl_silp.recipes.metrics import (
     batch_metrics, log_metrics, new_counters, plot_learning_curve, summarize, truncate_logs, write_results,
 )
-from torchrl_silp.recipes.start import start_run
+from torchrl_silp.recipes.preflight import check_config
+from torchrl_silp.recipes.start import start_run, write_run_config
 from torchrl_silp.recipes.update import compile_update, make_gradient_step
 from torchrl_silp.viz import save_rollout_png
 
 schema.register()
 
 
-def train(cfg: DictConfig) -> dict:
-    """Train, evaluate on the fixed test tasks, checkpoint, report. Returns the summary dict."""
+def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
+    """Train, evaluate on the fixed test tasks, checkpoint, report. Returns the summary dict.
+
+    Every value of ``cfg`` and what it asks of its ``run_dir`` are checked before anything is written
+    (:func:`~torchrl_silp.recipes.preflight.check_config`, ``start_run``). ``resume_command``: what a
+    stop prints to continue the run (the script's entry point passes its command line).
+    """
+    check_config(cfg)
     total_episodes = cfg.collector.total_episodes
-    if total_episodes is not None and (isinstance(total_episodes, bool) or total_episodes < 1):
-        raise ValueError(f"collector.total_episodes must be a positive number of episodes or null, got {total_episodes!r}")
-    device, run_dir = start_run(cfg)
+    device, run_dir = start_run(cfg, write_config=False)
     ckpt_dir = run_dir / "checkpoint"
     model = make_model(cfg, device)
     exploration = make_exploration(cfg, model, device)
     primers = [exploration.make_tensordict_primer()] if exploration is not None else []
     env = make_env(cfg, model, device, seed=cfg.seed, primers=primers)
-    if cfg.collector.frames_per_batch % cfg.env.num_envs:
-        raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
-                         f"of env.num_envs ({cfg.env.num_envs})")
     actor, critic = make_actor_critic(cfg, model, env, device)
     loss, updater = make_loss(cfg, actor, critic, model, env)
     optimizers = make_optimizers(cfg, loss)
@@ -66,6 +75,7 @@ def train(cfg: DictConfig) -> dict:
     # the evaluated policy: the actor, or an average of its parameters over updates
     averaged = make_averaged_actor(actor, decay) if decay is not None else None
     evaluated = actor if averaged is None else averaged.module
+    write_run_config(cfg)  # everything is built and checked: the run folder may be written
 
     resumed = cfg.resume and checkpoint_exists(ckpt_dir)
     counters, history, logger_state = restore(ckpt_dir, cfg, loss, optimizers, averaged, buffers, assembler,
@@ -107,6 +117,7 @@ def train(cfg: DictConfig) -> dict:
             history.append(point)
         if counters["time_to_095_s"] is None and metrics["success_rate"] >= 0.95:
             counters["time_to_095_s"] = counters["train_wall_s"]
+        plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
         return (metrics, rollout) if return_rollout else metrics
 
     remaining = cfg.collector.total_frames - counters["frames"]
@@ -128,15 +139,49 @@ def train(cfg: DictConfig) -> dict:
         pbar = tqdm.tqdm(total=total_episodes, initial=min(counters["episodes"], total_episodes), unit="episode",
                          disable=not cfg.progress)
     status = {"phase": "random actions" if counters["frames"] < cfg.collector.init_random_frames else "training"}
+    if history:  # a resumed run shows what its last evaluation showed
+        status.update(success=f"{history[-1]['success_rate']:.3f}", demos=len(buffers.demo_buffer))
+    # the update compiles in its first calls after compile.warmup eager ones: the bar says so meanwhile
+    to_compile = [cfg.compile.warmup + 1 if cfg.compile.compile else 0]
 
     def show(**fields):
         status.update(fields, updates=f"{counters['updates']:,}")
         pbar.set_postfix(status, refresh=True)
 
+    def update(n: int, stop: StopRequest) -> list:
+        """Up to ``n`` gradient updates, stopping early on a stop request; what is left goes to ``updates_owed``."""
+        losses = []
+        for i in range(n):
+            if stop.requested:
+                counters["updates_owed"] = n - i
+                break
+            if to_compile[0]:
+                show(phase="compiling")
+            losses.append(gradient_step(buffers.sample()))
+            if averaged is not None:
+                averaged.update_parameters(actor)
+            counters["updates"] += 1
+            if to_compile[0]:
+                to_compile[0] -= 1
+                if not to_compile[0]:
+                    show(phase="training")
+            elif i % 20 == 0:
+                show(phase="training")
+        else:
+            counters["updates_owed"] = 0
+        show()
+        return losses
+
     last_eval_frames = history[-1]["frames"] if history else 0
+    show()  # the checkpoint's counters from the start
     tick = time.perf_counter()
     with StopRequest() as stop:
-        for batch in (collector if remaining > 0 else []):
+        if counters.get("updates_owed"):  # the updates of the batch a stop cut short, before any new frame
+            with timeit("train"):
+                update(counters["updates_owed"], stop)
+            counters["train_wall_s"] += time.perf_counter() - tick
+            tick = time.perf_counter()
+        for batch in (collector if remaining > 0 and not stop.requested else []):
             counters["iterations"] += 1
             counters["frames"] += batch.numel()
             episodes_done = int(batch["next", "done"].sum())
@@ -155,13 +200,7 @@ def train(cfg: DictConfig) -> dict:
             losses = []
             if counters["frames"] >= cfg.collector.init_random_frames and len(buffers):
                 with timeit("train"):
-                    for i in range(updates_per_batch):
-                        losses.append(gradient_step(buffers.sample()))
-                        if averaged is not None:
-                            averaged.update_parameters(actor)
-                        counters["updates"] += 1
-                        if i % 20 == 0:
-                            show(phase="training")
+                    losses = update(updates_per_batch, stop)
             counters["train_wall_s"] += time.perf_counter() - tick
             counters["planning_s"] = buffers.demo_buffer.planning_time
             metrics = batch_metrics(batch, losses, counters, len(buffers.demo_buffer))
@@ -170,8 +209,9 @@ def train(cfg: DictConfig) -> dict:
                 kept = torch.stack([td["bc_filter_fraction"] for td in losses])[with_demos]
                 counters["bc_kept_sum"] = counters.get("bc_kept_sum", 0.0) + kept.sum().item()
                 counters["bc_kept_updates"] = counters.get("bc_kept_updates", 0) + kept.numel()
-            if counters["frames"] - last_eval_frames >= cfg.eval.every_frames:
+            if counters["frames"] - last_eval_frames >= cfg.eval.every_frames and not stop.requested:
                 last_eval_frames = counters["frames"]
+                counters["evaluations"] = counters.get("evaluations", 0) + 1
                 with timeit("eval"):
                     metrics.update({f"eval/{k}": v for k, v in run_evaluation().items()})
                 show(success=f"{metrics['eval/success_rate']:.3f}", demos=len(buffers.demo_buffer))
@@ -193,7 +233,9 @@ def train(cfg: DictConfig) -> dict:
     collector.shutdown()
     pbar.close()
     if stop.requested:
-        stop.exit(f"stopped at {counters['frames']} frames, checkpoint in {ckpt_dir}: continue with resume=true")
+        how = resume_command or "resume=true and the same config"
+        stop.exit(f"stopped at {counters['frames']:,} frames and {counters['updates']:,} updates with a checkpoint "
+                  f"in {ckpt_dir}; continue with: {how}")
 
     if cfg.eval.test_seed == cfg.eval.seed:  # one set of tasks for the curve and the figure: evaluated once
         final, rollout = run_evaluation(return_rollout=True)
@@ -206,16 +248,6 @@ def train(cfg: DictConfig) -> dict:
     if summary["warning"]:
         warnings.warn(summary["warning"])
     plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
-    if isinstance(model, UR5eReach):  # the pictures draw a UR5e
-        save_rollout_png(model, rollout[:4], run_dir / "test_rollouts.png")
+    save_rollout_png(model, rollout[:4], run_dir / "test_rollouts.png")
     write_results(run_dir, summary, history)
     return summary
-
-
-@hydra.main(version_base="1.3", config_path="config", config_name="sac_silp")
-def main(cfg):
-    return train(cfg)
-
-
-if __name__ == "__main__":
-    main()

@@ -1,8 +1,15 @@
-"""Typed (hydra structured) configs of the training recipes: hydra rejects a field of the wrong type or name.
+"""Typed (hydra structured) configs of the training recipes, and the checks of their values, key by key.
 
-Ranges and choices are checked where the values are used, by the library's own
-constructors (``ReachEnv``, ``SILPLoss``, ``MixedReplay``, ...), which name the
-parameter. Every field is documented in ``config/sac_silp.yaml``.
+Hydra rejects a field of the wrong type or name; :func:`check_config` checks the ranges,
+choices and cross-field rules of a composed config and :func:`check_run_folder` what it asks
+of its ``run_dir`` (a fresh start, a resume), each raising :class:`ConfigError` whose one-line
+message names the key as the user types it (``env.num_envs``, ``planner.d``). The library's
+constructors check the same values again where they are used, naming their parameters.
+Every field is documented in ``config/sac_silp.yaml``.
+
+This module imports neither torch nor the package (only hydra and omegaconf), so that a
+recipe script refuses a bad command line (:func:`preflight`) within a second, before its
+heavy imports.
 """
 
 from __future__ import annotations
@@ -15,9 +22,12 @@ from typing import Any, Optional
 from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from torchrl_silp.eval import DEFAULT_TEST_SEED, DEFAULT_VALIDATION_SEED
+# torchrl_silp.eval's DEFAULT_VALIDATION_SEED and DEFAULT_TEST_SEED, written out: importing the package
+# would import torch (tests/test_bad_input.py checks they agree)
+DEFAULT_VALIDATION_SEED = 31415926
+DEFAULT_TEST_SEED = 20231101
 
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 
@@ -136,7 +146,7 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     threads: int = 0
-    run_dir: str = "runs/${logger.exp_name}/seed${seed}"
+    run_dir: str = "runs/${env.name}/${logger.exp_name}/seed${seed}"
     resume: Any = False
     progress: bool = True
     stop_at_success: Optional[float] = None
@@ -157,7 +167,9 @@ class TrainConfig:
 
 def register() -> None:
     """Register the recipes' schemas: ``train_schema`` (sac_silp, ddpg_silp), ``bc_schema`` (bc) and
-    ``transfer_schema`` (transfer)."""
+    ``transfer_schema`` (transfer), and the ``class_name`` resolver."""
+    # ${class_name:a.b.Arm3Reach} -> "Arm3Reach": config/env/custom.yaml names a user's task by its class
+    OmegaConf.register_new_resolver("class_name", lambda target: str(target).rsplit(".", 1)[-1], replace=True)
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
     ConfigStore.instance().store(name="bc_schema", node=BCConfig)
     ConfigStore.instance().store(name="transfer_schema", node=TransferConfig)
@@ -175,6 +187,17 @@ def config_context():
             yield
 
 
+def free_model_keys(overrides: list[str] | tuple[str, ...]) -> list[str]:
+    """``env.model.<key>=value`` as ``++env.model.<key>=value``: ``env.model`` holds a task model's keyword
+    arguments, whichever the model takes, so a key its env yaml does not list is added, not refused.
+
+    Examples:
+        >>> free_model_keys(["env.model.n_discs=2", "+env.model.a=1", "seed=3"])
+        ['++env.model.n_discs=2', '+env.model.a=1', 'seed=3']
+    """
+    return [f"++{o}" if o.startswith("env.model.") and "=" in o else o for o in overrides]
+
+
 def load_config(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
     """A recipe's config (``recipes/config/<config_name>.yaml``) with hydra overrides, as its script composes it.
 
@@ -184,7 +207,7 @@ def load_config(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -
         ('panda_reach', 3, 'sac')
     """
     with config_context():
-        return compose(config_name=config_name, overrides=list(overrides))
+        return compose(config_name=config_name, overrides=free_model_keys(overrides))
 
 
 # ------------------------------------------------------------------ recipes/bc.py
@@ -230,7 +253,7 @@ class BCConfig:
     seed: int = 0
     device: str = "cpu"
     threads: int = 0
-    run_dir: str = "runs/bc_${source}/seed${seed}"
+    run_dir: str = "runs/${env.name}/${logger.exp_name}/seed${seed}"
     resume: Any = False
     progress: bool = True
     env: EnvConfig = field(default_factory=EnvConfig)

@@ -9,16 +9,16 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from torchrl_silp.recipes.checkpointing import check_resume
+from torchrl_silp.recipes.preflight import ConfigError, check_run_folder
 from torchrl_silp.recipes.update import check_compile
 
 
 def check_device(value) -> None:
-    """Refuses a ``device`` that is not cpu, cuda, cuda:N or auto, or CUDA on a machine without one."""
+    """Refuses (:class:`ConfigError`) a ``device`` that is not cpu, cuda, cuda:N or auto, or CUDA on a machine without one."""
     if value not in ("cpu", "cuda", "auto") and not str(value).startswith("cuda:"):
-        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {value!r}")
+        raise ConfigError("device", f"must be cpu, cuda, cuda:N or auto, got {value!r}")
     if str(value).startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device={value!r}, but torch finds no CUDA device here: use device=cpu or device=auto")
+        raise ConfigError("device", f"{value} asked, but torch finds no CUDA device here: use device=cpu or device=auto")
 
 
 def resolve_device(cfg) -> torch.device:
@@ -27,14 +27,16 @@ def resolve_device(cfg) -> torch.device:
     return torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
 
 
-def start_run(cfg) -> tuple[torch.device, Path]:
+def start_run(cfg, write_config: bool = True) -> tuple[torch.device, Path]:
     """What every recipe does first: ``(device, run_dir)``.
 
-    Resolves ``cfg.device`` ("auto": CUDA when there is one), checks a resume against the
-    checkpointed run's config (:func:`check_resume`), sets torch's threads (``cfg.threads``,
-    0 leaves the default), seeds torch, numpy and ``random`` with ``cfg.seed``, creates
-    ``cfg.run_dir`` and saves the resolved config there as ``config.yaml``: what rebuilds a
-    run's networks from its checkpoint (``load_trained_networks``) and what a report cites.
+    Resolves ``cfg.device`` ("auto": CUDA when there is one), checks what ``cfg`` asks of its
+    run folder (:func:`~torchrl_silp.recipes.preflight.check_run_folder`: a fresh start never
+    lands on a checkpoint, a resume matches the checkpointed run's config), sets torch's threads
+    (``cfg.threads``, 0 leaves the default), seeds torch, numpy and ``random`` with ``cfg.seed``.
+    With ``write_config``, then creates ``cfg.run_dir`` and saves the resolved config there
+    (:func:`write_run_config`); a recipe that builds more checked objects first passes False and
+    writes it once they are built, so that a refused value leaves the folder untouched.
     """
     device = resolve_device(cfg)
     check_compile(cfg, device)
@@ -43,10 +45,17 @@ def start_run(cfg) -> tuple[torch.device, Path]:
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
+    check_run_folder(cfg)
     run_dir = Path(cfg.run_dir)
-    if run_dir.exists() and not run_dir.is_dir():
-        raise ValueError(f"run_dir {str(run_dir)!r} is a file: give a directory (it is created if missing)")
-    check_resume(cfg, run_dir)
+    if write_config:
+        write_run_config(cfg)
+    return device, run_dir
+
+
+def write_run_config(cfg) -> Path:
+    """Create ``cfg.run_dir`` and save the resolved config there as ``config.yaml``: what rebuilds a run's
+    networks from its checkpoint (``load_trained_networks``) and what a report cites."""
+    run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
-    return device, run_dir
+    return run_dir

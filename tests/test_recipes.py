@@ -5,7 +5,6 @@ Config validation runs in-process: tests/test_recipe_builders.py."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -44,7 +43,6 @@ PANDA = ["env=panda_reach", "env.num_envs=4"]
 
 def run_recipe(script: str, run_dir: Path, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
     cmd = [sys.executable, str(RECIPES / script), *TINY, f"run_dir={run_dir}", *overrides]
-    # hydra writes its own outputs/ under the working directory: keep it in tmp
     return subprocess.run(cmd, cwd=run_dir.parent, capture_output=True, text=True, timeout=timeout)
 
 
@@ -226,14 +224,51 @@ def test_sigterm_saves_then_stops_and_resume_continues(tmp_path):
     finally:
         proc.kill()
     assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
-    assert "SIGTERM: stopping after this batch" in out and "continue with resume=true" in out
-    # the checkpoint is the state after the last logged batch
-    frames = saved_counters(ckpt)["frames"]
+    assert "SIGTERM: stopping at the next update" in out and "resume=true" in out.splitlines()[-1]
+    assert "Traceback" not in err
+    # the checkpoint is the state after the last logged batch (its updates owed, if the stop cut them short)
+    counters = saved_counters(ckpt)
+    frames = counters["frames"]
+    assert counters["updates"] + counters["updates_owed"] == 25 * counters["iterations"]
     assert logged_steps(run_dir)["train/episodes"] == list(range(100, frames + 1, 100))
     assert not (run_dir / "summary.json").exists()
     resumed = run_recipe("sac_silp.py", run_dir, f"collector.total_frames={frames + 100}", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert logged_steps(run_dir)["train/episodes"] == list(range(100, frames + 101, 100))
+    assert summary(run_dir)["updates"] == 25 * (frames + 100) // 100
+
+
+def test_sigterm_in_the_middle_of_a_batch_s_updates_stops_within_seconds_and_resume_owes_nothing(tmp_path):
+    """2,000 updates a batch (tens of seconds): the stop comes at the next update, not at the batch's end;
+    the resumed run makes the updates the stop cut short, then goes on, each counter and log row once."""
+    run_dir = tmp_path / "run"
+    ckpt = run_dir / "checkpoint"
+    many = ("optim.utd_ratio=20", "collector.total_frames=300", "eval.every_frames=100000")
+    proc = start_run(run_dir, *many)
+    try:
+        wait_for(proc, lambda: saved_counters(ckpt) is not None, "checkpoint")
+        time.sleep(2.0)  # into the second batch's updates
+        proc.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        out, err = proc.communicate(timeout=60)
+        took = time.monotonic() - sent
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert took < 10, f"{took:.1f} s from SIGTERM to exit"
+    assert "Traceback" not in err
+    counters = saved_counters(ckpt)
+    assert counters["frames"] == 200 and 0 < counters["updates_owed"] <= 2000
+    assert counters["updates"] + counters["updates_owed"] == 4000
+    resumed = run_recipe("sac_silp.py", run_dir, *many, "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    done = summary(run_dir)
+    assert done["frames"] == 300 and done["updates"] == 6000
+    assert saved_counters(ckpt)["updates_owed"] == 0
+    assert len(load_buffer(ckpt / "buffers" / "interaction")) == 300
+    steps = logged_steps(run_dir)
+    assert steps["train/episodes"] == [100, 200, 300]
+    assert all(s == sorted(set(s)) for s in steps.values())
 
 
 def test_checkpoint_of_a_1600_frame_run_is_small(tmp_path):

@@ -169,7 +169,7 @@ def test_sweep_report_and_restart(tmp_path, capsys):
         assert [(r["method"], r["status"]) for r in outcome] == [("sac_silp_plus", "failed"), ("bc_sac_silp_plus", "failed")]
         assert "multiple of env.num_envs" in outcome[0]["error"]
         assert outcome[1]["error"] == "needs sac_silp_plus/seed0, which failed"
-        assert "FAILED  sac_silp_plus seed 0: ValueError" in out and "0 ok, 2 failed" in out
+        assert "FAILED  sac_silp_plus seed 0: ConfigError" in out and "0 ok, 2 failed" in out
         assert not (tmp_path / "failing" / "bc_sac_silp_plus").exists()
     finally:
         ray.shutdown()
