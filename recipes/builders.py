@@ -31,18 +31,47 @@ from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, transition_keys
-from torchrl_silp.models import make_model as _make_model
+from torchrl_silp.models import TaskModel, make_model as _make_model
+from torchrl_silp.models.check import TaskModelError, ensure_checked
 from torchrl_silp.models.learned_collision import load_collision_net, with_learned_edges
 from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ
 from torchrl_silp.objectives import DEMO_ROWS
+from torchrl_silp.recipes.preflight import ConfigError
 
 EXPLORATION_MODES = ("gp", "random", "none")
 
 
 # ---------------------------------------------------------------- environment
 def make_model(cfg, device):
-    """The task model named by ``cfg.env.name``, with ``cfg.env.model`` as keyword arguments."""
-    return _make_model(cfg.env.name, device=device, **OmegaConf.to_container(cfg.env.model, resolve=True))
+    """The run's task model, checked (:func:`~torchrl_silp.models.check_task_model`), on ``device``.
+
+    ``cfg.env.model`` holds either a ``_target_`` (any :class:`~torchrl_silp.models.TaskModel` class,
+    built by hydra's ``instantiate`` with the node's other keys: a user's own task, with no file of the
+    repository changed), or the keyword arguments of the package's model named ``cfg.env.name``.
+    A model that breaks a rule of the interface is refused with a ``ConfigError`` naming
+    ``env.model`` and the member and rule it broke.
+    """
+    kwargs = OmegaConf.to_container(cfg.env.model, resolve=True)
+    if "_target_" in kwargs:
+        from hydra.errors import InstantiationException
+        from hydra.utils import instantiate
+
+        try:
+            model = instantiate(cfg.env.model)
+        except InstantiationException as error:
+            raise ConfigError("env.model._target_", " ".join(str(error).split())) from error
+        if not isinstance(model, TaskModel):
+            raise ConfigError("env.model._target_", f"{kwargs['_target_']} built a {type(model).__name__}, "
+                                                    "not a torchrl_silp.models.TaskModel")
+        if model.device != torch.device(device):
+            model.to(device)
+    else:
+        model = _make_model(cfg.env.name, device=device, **kwargs)
+    try:
+        ensure_checked(model)
+    except TaskModelError as error:
+        raise ConfigError("env.model", str(error)) from error
+    return model
 
 
 def observation_keys(cfg) -> list[str]:
