@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 import torch
 from matplotlib.figure import Figure
 from PIL import Image
@@ -152,3 +153,32 @@ def test_random_rollout_recipe_smoke(tmp_path, capsys):
     assert "collision rate" in printed and str(out) in printed
     with pytest.raises(SystemExit):
         recipe.main(["--steps", "0"])
+
+
+def test_the_panda_is_drawn_from_its_own_primitives_with_every_box(tmp_path):
+    from torchrl_silp import Panda, PandaReach, ReachEnv
+    from torchrl_silp.viz import arm_polygons, draw_scene, save_rollout_png
+
+    panda = Panda()
+    q = 0.5 * (panda.joint_low + panda.joint_high)
+    polys, colours = arm_polygons(panda, q)
+    kinds = [p.kind for p in panda.primitives]
+    # every primitive is drawn: a cylinder 16 sides + 2 x 8 cap quads, a box 6 faces, a sphere its mesh
+    assert len(polys) == len(colours) >= 32 * kinds.count("cylinder") + 6 * kinds.count("box")
+    _, pos = panda.frames(q)
+    frames = pos.numpy()
+    drawn = np.concatenate(polys)
+    # the solids sit on the arm: every vertex within a link's radius (< 0.15 m) of the frames' chain
+    reach = np.linalg.norm(frames - frames[0], axis=-1).max()
+    assert np.isfinite(drawn).all() and np.linalg.norm(drawn - frames[0], axis=-1).max() <= reach + 0.15
+    two_boxes = [0.3, 0.4, -0.1, 0.0, 0.0, 0.2, 0.5, 0.6, 0.1, 0.2, 0.0, 0.3]
+    ax = draw_scene(panda, q, two_boxes, [0.5, 0.0, 0.3])
+    ax.figure.canvas.draw()
+    (solids,) = [c for c in ax.collections if isinstance(c, Poly3DCollection) and c.get_zorder() == 2]
+    assert len(solids.get_paths()) == len(polys) + 2 * 6  # the arm's faces and both boxes' six
+    with pytest.raises(ValueError, match="6 numbers each"):
+        draw_scene(panda, q, two_boxes[:7], [0.5, 0.0, 0.3])
+    env = ReachEnv(PandaReach(num_boxes=2), num_envs=2, seed=0)
+    torch.manual_seed(0)
+    out = save_rollout_png(env, env.rollout(4), tmp_path / "panda.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -29,6 +29,7 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from torchrl_silp.models.base import TaskModel
 from torchrl_silp.models.ur5e import UR5eReach
 from torchrl_silp.robot import UR5e
+from torchrl_silp.robots.base import ArmKinematics
 
 __all__ = ["draw_scene", "render_rgb", "save_rollout_png", "save_task_rollout_png", "arm_polygons"]
 
@@ -48,7 +49,7 @@ _DEFAULT_VIEW = (22.0, -40.0)  # elevation, azimuth (degrees): from the front ri
 
 # ------------------------------------------------------------------ inputs
 def _vector(value, length: int | None, name: str, rows: bool = False) -> np.ndarray:
-    """``value`` as a float64 array of shape ``(length,)`` (or ``(T, 3)`` when ``rows``)."""
+    """``value`` as a float64 array of shape ``(length,)`` (any 1-D length when None; ``(T, 3)`` when ``rows``)."""
     if isinstance(value, torch.Tensor):
         value = value.detach().to("cpu", torch.float64).numpy()
     try:
@@ -58,7 +59,7 @@ def _vector(value, length: int | None, name: str, rows: bool = False) -> np.ndar
     if rows:
         if arr.ndim != 2 or arr.shape[-1] != 3 or arr.shape[0] < 1:
             raise ValueError(f"{name} must have shape (T, 3) with T >= 1, got {arr.shape}")
-    elif arr.shape != (length,):
+    elif arr.ndim != 1 or (length is not None and arr.shape != (length,)):
         raise ValueError(f"{name} must have shape ({length},), got {arr.shape}")
     if not np.isfinite(arr).all():
         raise ValueError(f"{name} must be finite, got {arr}")
@@ -71,9 +72,9 @@ def _positive_int(value, name: str, low: int = 1) -> int:
     return int(value)
 
 
-def _check_robot(robot) -> UR5e:
-    if not isinstance(robot, UR5e):
-        raise TypeError(f"robot must be a torchrl_silp.UR5e, got {type(robot).__name__}")
+def _check_robot(robot) -> ArmKinematics:
+    if not isinstance(robot, ArmKinematics):
+        raise TypeError(f"robot must be an arm of torchrl_silp.robots (UR5e, Panda), got {type(robot).__name__}")
     return robot
 
 
@@ -141,15 +142,17 @@ def _sphere_faces(radius: float, pose: np.ndarray) -> list[np.ndarray]:
     ]
 
 
-def arm_polygons(robot: UR5e, q3) -> tuple[list[np.ndarray], list[tuple]]:
+def arm_polygons(robot: ArmKinematics, q3) -> tuple[list[np.ndarray], list[tuple]]:
     """World-frame polygons and shaded RGBA face colours of the arm's collision primitives.
 
     Every polygon is a quad: a cylinder is 16 side quads and two caps of 8
     quads each, a box six faces, a sphere a coarse latitude-longitude mesh.
 
     Args:
-        robot: the :class:`~torchrl_silp.robot.UR5e` whose ``primitives`` are drawn.
-        q3: one configuration ``(3,)`` (tensor, array or sequence).
+        robot: the arm (:class:`~torchrl_silp.robots.base.ArmKinematics`: the UR5e, the Panda) whose
+            ``primitives`` are drawn; its ``END_EFFECTOR_LINKS`` in the gripper's colour.
+        q3: one configuration ``(robot.config_dim,)`` (tensor, array or sequence): the UR5e's 3 active
+            joints, the Panda's 7.
 
     Returns:
         a list of ``(k, 3)`` vertex arrays and a list of RGBA tuples, one per polygon.
@@ -162,7 +165,7 @@ def arm_polygons(robot: UR5e, q3) -> tuple[list[np.ndarray], list[tuple]]:
         (True, (4, 3))
     """
     robot = _check_robot(robot)
-    q = torch.as_tensor(_vector(q3, 3, "q3"), dtype=robot.dtype, device=robot.device)
+    q = torch.as_tensor(_vector(q3, robot.config_dim, "q3"), dtype=robot.dtype, device=robot.device)
     with torch.no_grad():
         rot, pos = robot.frames(q)
     rot = rot.to("cpu", torch.float64).numpy()
@@ -181,7 +184,7 @@ def arm_polygons(robot: UR5e, q3) -> tuple[list[np.ndarray], list[tuple]]:
             faces = _box_faces(-half, half, pose)
         else:
             faces = _sphere_faces(prim.size[0], pose)
-        if prim.link in UR5e.GRIPPER_LINKS:
+        if prim.link in robot.END_EFFECTOR_LINKS:
             rgba = (*_hex_rgb(_GRIPPER_COLOUR), 1.0)
         else:
             rgba = (*_hex_rgb(_ARM_COLOURS[f % 2]), 1.0)
@@ -210,7 +213,7 @@ def _new_axes(width_in: float = 4.8, height_in: float = 4.8, dpi: int = 100) -> 
 
 
 def draw_scene(
-    robot: UR5e,
+    robot: ArmKinematics,
     q3,
     obstacle,
     goal,
@@ -231,9 +234,9 @@ def draw_scene(
     trajectory are drawn on top of the solids so they stay visible behind the arm.
 
     Args:
-        robot: a :class:`~torchrl_silp.robot.UR5e`.
-        q3: the 3 active joint angles ``(3,)`` (tensor, array or sequence).
-        obstacle: the obstacle AABB ``(xmin, xmax, ymin, ymax, zmin, zmax)``.
+        robot: an arm of :mod:`torchrl_silp.robots` (the UR5e, the Panda).
+        q3: the arm's configuration ``(robot.config_dim,)`` (tensor, array or sequence).
+        obstacle: the obstacle AABBs ``(xmin, xmax, ymin, ymax, zmin, zmax)``, one after the other ``(6 k,)``.
         goal: goal position ``(3,)``.
         start_tcp: TCP position ``(3,)`` at the start of the episode, or ``None``.
         trajectory: TCP positions ``(T, 3)``, or ``None``.
@@ -255,9 +258,12 @@ def draw_scene(
         >>> ax.figure.savefig(io.BytesIO(), format="png")
     """
     robot = _check_robot(robot)
-    box = _vector(obstacle, 6, "obstacle")
-    lo, hi = box[0::2], box[1::2]
-    if (lo > hi).any():
+    box = _vector(obstacle, None, "obstacle")
+    if box.size == 0 or box.size % 6:
+        raise ValueError(f"obstacle must hold boxes (xmin, xmax, ymin, ymax, zmin, zmax), 6 numbers each, got {box.size}")
+    boxes = box.reshape(-1, 6)
+    lows, highs = boxes[:, 0::2], boxes[:, 1::2]
+    if (lows > highs).any():
         raise ValueError(f"obstacle must be (xmin, xmax, ymin, ymax, zmin, zmax) with min <= max, got {box}")
     goal = _vector(goal, 3, "goal")
     start = None if start_tcp is None else _vector(start_tcp, 3, "start_tcp")
@@ -270,9 +276,13 @@ def draw_scene(
         raise ValueError(f"view must be (elevation, azimuth) in degrees, got {view!r}")
 
     arm, arm_colours = arm_polygons(robot, q3)
-    obstacle_faces = _box_faces(lo, hi)
+    obstacle_faces, obstacle_colours = [], []
+    for lo, hi in zip(lows, highs):
+        faces = _box_faces(lo, hi)
+        obstacle_faces += faces
+        obstacle_colours += _shade(faces, (lo + hi) / 2, _OBSTACLE_COLOUR)
     polys = arm + obstacle_faces
-    face = arm_colours + _shade(obstacle_faces, (lo + hi) / 2, _OBSTACLE_COLOUR)
+    face = arm_colours + obstacle_colours
     edge = [(0, 0, 0, 0)] * len(arm) + [_OBSTACLE_EDGE] * len(obstacle_faces)
 
     # Everything the picture must hold sets the limits; the default scene box
@@ -337,7 +347,7 @@ def draw_scene(
 
 
 def render_rgb(
-    robot: UR5e,
+    robot: ArmKinematics,
     q3,
     obstacle,
     goal,
@@ -411,8 +421,8 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
     episode ended (success, collision count, or still running / truncated).
 
     Args:
-        env_or_robot: a :class:`~torchrl_silp.robot.UR5e`, or an env or model holding one
-            (``.robot`` or ``.model.robot``): the arm is drawn. Any other task model (or an env
+        env_or_robot: an arm of :mod:`torchrl_silp.robots` (the UR5e, the Panda), or an env or model
+            holding one (``.robot`` or ``.model.robot``): the arm is drawn. Any other task model (or an env
             holding one): :func:`save_task_rollout_png` draws its achieved-goal paths.
         rollout: TensorDict with batch ``[B, T]`` or ``[T]`` (more leading dims
             are flattened) holding the named state (``"joint_position"``,
@@ -442,16 +452,16 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
 
     robot = env_or_robot
     for attr in ("model", "robot"):
-        if not isinstance(robot, UR5e) and hasattr(robot, attr):
-            if isinstance(robot, TaskModel) and not isinstance(getattr(robot, attr), UR5e):
+        if not isinstance(robot, ArmKinematics) and hasattr(robot, attr):
+            if isinstance(robot, TaskModel) and not isinstance(getattr(robot, attr), ArmKinematics):
                 break
             robot = getattr(robot, attr)
-    if not isinstance(robot, UR5e):
+    if not isinstance(robot, ArmKinematics):
         model = env_or_robot if isinstance(env_or_robot, TaskModel) else getattr(env_or_robot, "model", None)
         if isinstance(model, TaskModel):  # a task without a UR5e: its achieved-goal paths
             return save_task_rollout_png(model, rollout, path, max_panels, dpi=dpi)
         raise TypeError(
-            "env_or_robot must be a torchrl_silp.UR5e, a TaskModel, or an env holding one (`robot` or `model`), "
+            "env_or_robot must be an arm of torchrl_silp.robots, a TaskModel, or an env holding one (`robot` or `model`), "
             f"got {type(env_or_robot).__name__}"
         )
     if not isinstance(rollout, TensorDictBase):
