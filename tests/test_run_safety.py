@@ -193,3 +193,27 @@ def test_a_resume_into_another_task_s_run_is_refused_by_the_field(tmp_path):
     assert check_run_folder(load_config("sac_silp", [f"run_dir={run_dir}", "resume=true"])) is True
     with pytest.raises(ConfigError, match="^run_dir: .* holds a run's checkpoint"):
         check_run_folder(cfg)
+
+
+def test_ctrl_c_stops_with_exit_130_a_checkpoint_and_the_resume_command(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, str(RECIPES / "sac_silp.py"), *TINY, "collector.total_frames=100000",
+                             f"run_dir={run_dir}"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    deadline = time.monotonic() + 240
+    try:
+        while not (run_dir / "checkpoint" / "state.pt").exists():
+            assert proc.poll() is None, proc.stderr.read()[-3000:]
+            assert time.monotonic() < deadline, "no checkpoint in 240 s"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("stopped at ") and last.endswith(f"run_dir={run_dir} resume=true")
+    resumed = recipe(tmp_path, *TINY, "collector.total_frames=400", f"run_dir={run_dir}", "resume=must")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert strict_json(run_dir / "summary.json")["frames"] == 400
