@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import re
 import shlex
 import sys
 from pathlib import Path
@@ -363,6 +364,11 @@ def _one_line(error: BaseException) -> str:
                                                                 "Config search path", "provider="))]
     if rest and source is error:  # e.g. hydra's "Available options in 'method': ..." and its hints
         reason += " (" + " ".join(rest) + ")"
+    group = re.search(r"Could not find '([\w.]+)/([^']+)'", reason)
+    if group and not key:  # a config group's option (method=bogus): the group is the key the user typed
+        options = re.search(r"Available options in '[^']+': ([^)]*)", reason)
+        listed = f"; one of: {options.group(1).strip()}" if options else ""
+        return f"{group.group(1)}: no option {group.group(2)!r}{listed}"
     return f"{key}: {reason}" if key and key not in reason else reason
 
 

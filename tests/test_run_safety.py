@@ -91,7 +91,7 @@ def test_a_fresh_start_onto_a_checkpoint_is_refused_and_writes_nothing(stopped_u
 
 BAD_INPUTS = [
     ("env.num_envs=-3", "env.num_envs: must be an integer >= 1, got -3"),
-    ("method=bogus", "Could not find 'method/bogus'"),
+    ("method=bogus", "method: no option 'bogus'; one of: ddpg "),
     ("optim.lr=abc", "optim.lr: Value 'abc' of type 'str' could not be converted to Float"),
     ("planner.d=-1", "planner.d: must be a number > 0, got -1.0"),
     ("collector.frames_per_batch=7", "collector.frames_per_batch: must be a multiple of env.num_envs (4), got 7"),
