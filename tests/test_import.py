@@ -1,4 +1,4 @@
-"""``import torchrl_silp`` registers nothing with torch: no operator of its own, no torch.library call."""
+"""``import torchrl_silp`` registers nothing with torch (no operator of its own, no torch.library call), and its modules import in any order."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -84,3 +85,49 @@ def test_the_probe_sees_a_package_that_registers_an_operator(tmp_path, how):
     (package / "__init__.py").write_text("import torch\nimport torch.library\n\n" + RELU_OP[how])
     found = probe("registers_an_op", str(package), path=str(tmp_path))
     assert found["calls"] and found["ops"] == ["registers_an_op::relu"]
+
+
+def test_the_package_s_module_level_imports_form_no_cycle():
+    """Each module's top-level ``import torchrl_silp...`` statements as edges (a name imported from a
+    package counts as its submodule where one exists): the graph has no cycle, so any module imports on
+    its own, in any order."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1] / "torchrl_silp"
+    modules = {}
+    for path in root.rglob("*.py"):
+        parts = list(path.relative_to(root.parent).with_suffix("").parts)
+        modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+
+    def module_of(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph = {}
+    for name, path in modules.items():
+        imported = set()
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, ast.Import):
+                imported |= {alias.name for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                imported |= {node.module, *(f"{node.module}.{alias.name}" for alias in node.names)}
+        graph[name] = {m for m in map(module_of, (i for i in imported if i.startswith("torchrl_silp"))) if m and m != name}
+    assert {"torchrl_silp.models.base", "torchrl_silp.transforms"} <= set(graph)
+    assert "torchrl_silp.transforms" in graph["torchrl_silp.models.base"]  # the graph holds real edges
+
+    done, path_stack = set(), []
+
+    def visit(name):
+        if name in path_stack:
+            raise AssertionError("import cycle: " + " -> ".join(path_stack[path_stack.index(name):] + [name]))
+        if name in done:
+            return
+        path_stack.append(name)
+        for other in sorted(graph[name]):
+            visit(other)
+        path_stack.pop()
+        done.add(name)
+
+    for name in sorted(graph):
+        visit(name)
