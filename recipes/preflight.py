@@ -263,14 +263,15 @@ def resume_fields_differ(cfg: DictConfig, saved_path: Path) -> tuple[str, object
     return None
 
 
-def check_run_folder(cfg: DictConfig) -> bool:
+def check_run_folder(cfg: DictConfig, quiet: bool = False) -> bool:
     """What ``cfg`` asks of its ``run_dir``, checked before anything in it is created or rewritten.
 
     Returns whether the run resumes from the folder's checkpoint. Refuses (:class:`ConfigError`): a
     ``run_dir`` that is a file; a fresh start (``resume=false``) into a folder that holds a run's
     checkpoint (another run's, or this one's: nothing in it is touched); ``resume=must`` with no
     checkpoint; a resume whose config differs from the checkpointed run's in a field of
-    :data:`RESUME_FIELDS`.
+    :data:`RESUME_FIELDS`. ``quiet``: say nothing of a ``resume=true`` that finds no checkpoint (a
+    later check of the same config says it).
     """
     run_dir = Path(cfg.run_dir)
     resume = cfg.get("resume", False)
@@ -287,7 +288,8 @@ def check_run_folder(cfg: DictConfig) -> bool:
     if not found:
         if resume == "must":
             raise ConfigError("resume", f"resume=must, but {run_dir / 'checkpoint'} holds no checkpoint")
-        print(f"resume=true, but {run_dir / 'checkpoint'} holds no checkpoint: starting a new run")
+        if not quiet:
+            print(f"resume=true, but {run_dir / 'checkpoint'} holds no checkpoint: starting a new run")
         return False
     saved_path = run_dir / "config.yaml"
     if saved_path.exists():
@@ -400,7 +402,7 @@ def main(config_name: str, train: str, argv: Sequence[str] | None = None, script
             check_config(cfg)
         except OmegaConfBaseException as error:  # e.g. an interpolation that cannot resolve
             raise ConfigError("", _one_line(error)) from None
-        check_run_folder(cfg)
+        check_run_folder(cfg, quiet=True)  # train's start_run checks it again, and says what it found
         if str(cfg.device).startswith("cuda"):  # the one check that needs torch
             import torch
 
