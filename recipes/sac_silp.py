@@ -181,6 +181,8 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
                 update(counters["updates_owed"], stop)
             counters["train_wall_s"] += time.perf_counter() - tick
             tick = time.perf_counter()
+            if stop.requested:  # stopped again within them: what was made is saved, the rest still owed
+                checkpoint()
         for batch in (collector if remaining > 0 and not stop.requested else []):
             counters["iterations"] += 1
             counters["frames"] += batch.numel()
@@ -233,6 +235,8 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
     collector.shutdown()
     pbar.close()
     if stop.requested:
+        if not counters["frames"]:  # before the first batch: nothing to save or resume
+            stop.exit("stopped before the first collector batch: nothing was collected or trained")
         how = resume_command or "resume=true and the same config"
         stop.exit(f"stopped at {counters['frames']:,} frames and {counters['updates']:,} updates with a checkpoint "
                   f"in {ckpt_dir}; continue with: {how}")
