@@ -28,7 +28,6 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
 from torchrl_silp.models.base import TaskModel
 from torchrl_silp.models.ur5e import UR5eReach
-from torchrl_silp.robot import UR5e
 from torchrl_silp.robots.base import ArmKinematics
 
 __all__ = ["draw_scene", "render_rgb", "save_rollout_png", "save_task_rollout_png", "arm_polygons"]
@@ -223,6 +222,7 @@ def draw_scene(
     *,
     title: str | None = None,
     view: tuple[float, float] = _DEFAULT_VIEW,
+    workspace=None,
 ) -> Axes3D:
     """Draw the arm at ``q3``, the table, the obstacle, the goal and optional TCP points.
 
@@ -243,6 +243,7 @@ def draw_scene(
         ax: a 3-D axes to draw into; a new figure on the Agg canvas when ``None``.
         title: axes title.
         view: ``(elevation, azimuth)`` of the camera in degrees.
+        workspace: the task's TCP workspace ``(low, high)`` drawn dotted; the UR5e task's by default.
 
     Returns:
         the axes drawn into (``ax.figure`` is its figure).
@@ -312,7 +313,7 @@ def draw_scene(
     )
     ax.add_collection3d(
         Line3DCollection(
-            _box_edges(UR5eReach.WORKSPACE_LOW, UR5eReach.WORKSPACE_HIGH),
+            _box_edges(*(workspace if workspace is not None else (UR5eReach.WORKSPACE_LOW, UR5eReach.WORKSPACE_HIGH))),
             colors=[(0.4, 0.4, 0.4, 0.5)],
             linewidths=0.6,
             linestyles=":",
@@ -458,12 +459,16 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
             robot = getattr(robot, attr)
     if not isinstance(robot, ArmKinematics):
         model = env_or_robot if isinstance(env_or_robot, TaskModel) else getattr(env_or_robot, "model", None)
-        if isinstance(model, TaskModel):  # a task without a UR5e: its achieved-goal paths
+        if isinstance(model, TaskModel):  # a task without an arm of torchrl_silp.robots: its goal-space paths
             return save_task_rollout_png(model, rollout, path, max_panels, dpi=dpi)
         raise TypeError(
             "env_or_robot must be an arm of torchrl_silp.robots, a TaskModel, or an env holding one (`robot` or `model`), "
             f"got {type(env_or_robot).__name__}"
         )
+    owner = env_or_robot if isinstance(env_or_robot, TaskModel) else getattr(env_or_robot, "model", None)
+    workspace = None
+    if getattr(owner, "workspace_low", None) is not None:  # the task model's TCP workspace, drawn dotted
+        workspace = (_vector(owner.workspace_low, 3, "workspace_low"), _vector(owner.workspace_high, 3, "workspace_high"))
     if not isinstance(rollout, TensorDictBase):
         raise TypeError(f"rollout must be a TensorDict, got {type(rollout).__name__}")
     if not isinstance(path, (str, os.PathLike)):
@@ -528,6 +533,7 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
             trajectory=path_xyz,
             ax=ax,
             title=title,
+            workspace=workspace,
         )
     fig.subplots_adjust(left=0.0, right=0.95, bottom=0.02, top=0.95, wspace=0.08, hspace=0.12)
     handles, labels = fig.axes[0].get_legend_handles_labels()
