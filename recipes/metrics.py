@@ -101,8 +101,8 @@ def summarize(cfg, counters: dict, final: dict, demos_stored: int, validation: d
 
 
 def training_warning(cfg, counters: dict, demos_stored: int) -> str | None:
-    """What the run did not train, in words, or None: no gradient update at all (the budget ended in the
-    random warm-up), or SILP+ with no demonstration stored (it ran as plain RL)."""
+    """What the run did not train or measure, in words, or None: no gradient update at all (the budget ended
+    in the random warm-up), SILP+ with no demonstration stored (it ran as plain RL), no periodic evaluation."""
     problems = []
     if counters["updates"] == 0:
         problems.append(f"no gradient update was made: the policy is untrained (the run ended at {counters['frames']} "
