@@ -411,6 +411,19 @@ def _episodes(done: np.ndarray) -> list[tuple[int, int, int]]:
     return out
 
 
+def _outcomes(td, shape: tuple) -> tuple[np.ndarray, ...]:
+    """A ``[B, T]`` rollout's ``("next", ...)`` flags as arrays of ``shape``: ``(done, reward, success,
+    collision, terminated)``; a key the rollout lacks reads as False (NaN for the reward)."""
+
+    def optional(key, fill, dtype):
+        if ("next", key) in td.keys(True):
+            return td["next", key].detach().to("cpu").numpy().reshape(shape).astype(dtype)
+        return np.full(shape, fill, dtype=dtype)
+
+    return (optional("done", False, bool), optional("reward", np.nan, np.float64), optional("success", False, bool),
+            optional("collision", False, bool), optional("terminated", False, bool))
+
+
 def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels: int = 4, *, dpi: int = 100):
     """Save one panel per episode of a TorchRL rollout: the arm at the episode's final state and its TCP path.
 
@@ -491,16 +504,7 @@ def save_rollout_png(env_or_robot, rollout, path: str | os.PathLike, max_panels:
     next_q, next_tcp = array(("next", "joint_position")), array(("next", "achieved_goal"))
     shape = start_tcp.shape[:2]
 
-    def optional(key, fill):
-        if ("next", key) in td.keys(True):
-            return td["next", key].detach().to("cpu").numpy().reshape(shape)
-        return np.full(shape, fill)
-
-    done = optional("done", False).astype(bool)
-    reward = optional("reward", np.nan).astype(np.float64)
-    success = optional("success", False).astype(bool)
-    collision = optional("collision", False).astype(bool)
-    terminated = optional("terminated", False).astype(bool)
+    done, reward, success, collision, terminated = _outcomes(td, shape)
 
     episodes = _episodes(done)[:max_panels]
     n = len(episodes)
@@ -597,15 +601,7 @@ def save_task_rollout_png(model: TaskModel, rollout, path: str | os.PathLike, ma
     boxes = model.scene_boxes(td.select(*model.scene_keys))
     boxes = None if boxes is None else boxes.detach().to("cpu", torch.float64).numpy()
 
-    def optional(key, fill):
-        if ("next", key) in td.keys(True):
-            return td["next", key].detach().to("cpu").numpy().reshape(shape)
-        return np.full(shape, fill)
-
-    done = optional("done", False).astype(bool)
-    reward = optional("reward", np.nan).astype(np.float64)
-    success = optional("success", False).astype(bool)
-    collision = optional("collision", False).astype(bool)
+    done, reward, success, collision, _ = _outcomes(td, shape)
     dims = min(start.shape[-1], 3)
     episodes = _episodes(done)[:max_panels]
     n = len(episodes)
