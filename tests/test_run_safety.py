@@ -41,25 +41,32 @@ def strict_json(path: Path):
     return json.loads(path.read_text(), parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
 
 
-@pytest.fixture(scope="module")
-def stopped_ur5e_run(tmp_path_factory):
-    """A UR5e run of the default method and seed in the default run folder, stopped by SIGTERM after its
-    first checkpoint: ``(cwd, run_dir)``."""
-    cwd = tmp_path_factory.mktemp("user")
-    run_dir = cwd / "runs" / "ur5e_reach" / "sac_silp_plus_ext" / "seed0"
-    proc = subprocess.Popen([sys.executable, str(RECIPES / "sac_silp.py"), *TINY, "collector.total_frames=100000"],
-                            cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def signalled_after_first_checkpoint(cwd: Path, run_dir: Path, signum: int, *overrides: str) -> tuple[int, str, str]:
+    """The main job started in ``cwd`` on a budget it will not reach, sent ``signum`` once ``run_dir`` holds its
+    first checkpoint: ``(returncode, stdout, stderr)``."""
+    proc = subprocess.Popen([sys.executable, str(RECIPES / "sac_silp.py"), *TINY, "collector.total_frames=100000",
+                             *overrides], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 240
     try:
         while not (run_dir / "checkpoint" / "state.pt").exists():
             assert proc.poll() is None, proc.stderr.read()[-3000:]
             assert time.monotonic() < deadline, "no checkpoint in 240 s"
             time.sleep(0.2)
-        proc.send_signal(signal.SIGTERM)
-        proc.communicate(timeout=60)
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert proc.returncode == 128 + signal.SIGTERM
+    return proc.returncode, out, err
+
+
+@pytest.fixture(scope="module")
+def stopped_ur5e_run(tmp_path_factory):
+    """A UR5e run of the default method and seed in the default run folder, stopped by SIGTERM after its
+    first checkpoint: ``(cwd, run_dir)``."""
+    cwd = tmp_path_factory.mktemp("user")
+    run_dir = cwd / "runs" / "ur5e_reach" / "sac_silp_plus_ext" / "seed0"
+    returncode, _, _ = signalled_after_first_checkpoint(cwd, run_dir, signal.SIGTERM)
+    assert returncode == 128 + signal.SIGTERM
     return cwd, run_dir
 
 
@@ -197,20 +204,8 @@ def test_a_resume_into_another_task_s_run_is_refused_by_the_field(tmp_path):
 
 def test_ctrl_c_stops_with_exit_130_a_checkpoint_and_the_resume_command(tmp_path):
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, str(RECIPES / "sac_silp.py"), *TINY, "collector.total_frames=100000",
-                             f"run_dir={run_dir}"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
-    deadline = time.monotonic() + 240
-    try:
-        while not (run_dir / "checkpoint" / "state.pt").exists():
-            assert proc.poll() is None, proc.stderr.read()[-3000:]
-            assert time.monotonic() < deadline, "no checkpoint in 240 s"
-            time.sleep(0.2)
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-    assert proc.returncode == 130, err[-3000:]
+    returncode, out, err = signalled_after_first_checkpoint(tmp_path, run_dir, signal.SIGINT, f"run_dir={run_dir}")
+    assert returncode == 130, err[-3000:]
     assert "Traceback" not in err and "KeyboardInterrupt" not in err
     last = out.strip().splitlines()[-1]
     assert last.startswith("stopped at ") and last.endswith(f"run_dir={run_dir} resume=true")
