@@ -27,8 +27,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 __all__ = [
-    "ConfigError", "check_config", "check_run_folder", "checkpoint_exists", "find_checkpoint", "compose_command_line", "main",
-    "resume_fields_differ",
+    "ConfigError", "check_config", "check_device", "check_run_folder", "checkpoint_exists", "find_checkpoint",
+    "compose_command_line", "main", "resume_fields_differ",
 ]
 
 # the library's choices (tests/test_bad_input.py checks each against the constant it copies)
@@ -106,10 +106,22 @@ def _choice(cfg, key: str, choices: Sequence) -> None:
         raise ConfigError(key, f"must be one of {', '.join(map(repr, choices))}, got {value!r}")
 
 
-def _check_device(value) -> None:
+def _check_device_name(value) -> None:
     if not isinstance(value, str) or not (value in ("cpu", "cuda", "auto") or
                                           (value.startswith("cuda:") and value[5:].isdigit())):
         raise ConfigError("device", f"must be cpu, cuda, cuda:N or auto, got {value!r}")
+
+
+def check_device(value) -> None:
+    """Refuses (:class:`ConfigError`) a ``device`` that is not cpu, cuda, cuda:N or auto, or CUDA on a machine
+    without one. Imports torch only to look for a CUDA device, when one is asked for."""
+    _check_device_name(value)
+    if value.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError("device", f"{value} asked, but torch finds no CUDA device here: use device=cpu or "
+                                        "device=auto")
 
 
 # ------------------------------------------------------------------ the config
@@ -138,7 +150,7 @@ def check_config(cfg: DictConfig) -> None:
         example = " (the task model's class, e.g. mypkg.tasks.MyReach)" if missing[0] == "env.model._target_" else ""
         raise ConfigError(missing[0], f"must be given{example}: {missing[0]}=...")
     _int(cfg, "seed", 0)
-    _check_device(cfg.device)
+    _check_device_name(cfg.device)  # its CUDA device: check_device, which needs torch
     _int(cfg, "threads", 0)
     _choice(cfg, "resume", RESUME_MODES)
     if not isinstance(cfg.run_dir, str) or not cfg.run_dir.strip():
@@ -403,12 +415,7 @@ def main(config_name: str, train: str, argv: Sequence[str] | None = None, script
         except OmegaConfBaseException as error:  # e.g. an interpolation that cannot resolve
             raise ConfigError("", _one_line(error)) from None
         check_run_folder(cfg, quiet=True)  # train's start_run checks it again, and says what it found
-        if str(cfg.device).startswith("cuda"):  # the one check that needs torch
-            import torch
-
-            if not torch.cuda.is_available():
-                raise ConfigError("device", f"{cfg.device} asked, but torch finds no CUDA device here: use "
-                                            "device=cpu or device=auto")
+        check_device(cfg.device)
     except ConfigError as error:
         print(f"error: {error}", file=sys.stderr)
         raise SystemExit(2) from None

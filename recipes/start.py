@@ -9,16 +9,8 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from torchrl_silp.recipes.preflight import ConfigError, check_run_folder
+from torchrl_silp.recipes.preflight import check_device, check_run_folder
 from torchrl_silp.recipes.update import check_compile
-
-
-def check_device(value) -> None:
-    """Refuses (:class:`ConfigError`) a ``device`` that is not cpu, cuda, cuda:N or auto, or CUDA on a machine without one."""
-    if value not in ("cpu", "cuda", "auto") and not str(value).startswith("cuda:"):
-        raise ConfigError("device", f"must be cpu, cuda, cuda:N or auto, got {value!r}")
-    if str(value).startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError("device", f"{value} asked, but torch finds no CUDA device here: use device=cpu or device=auto")
 
 
 def resolve_device(cfg) -> torch.device:
