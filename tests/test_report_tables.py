@@ -151,7 +151,8 @@ def test_the_command_renders_a_sweeps_own_table1_into_its_page(tmp_path):
     text = pages.main(["--results", str(tmp_path / "results"), "--out", str(md), "--figure", str(tmp_path / "c.png")])
     assert md.read_text() == f"# r\n\n{text}\n\nafter\n"
     cells = _rows(text)["sac"]
-    assert cells[2] == "0.300 (0.100)" and cells[4] == "0:01:30 (0:00:30)" and cells[3] == "0.864 (0.066)"
+    assert cells[2] == "0.300 (0.100)" and cells[5] == "0:01:30 (0:00:30)" and cells[3] == "0.864 (0.066)"
+    assert cells[4] == f"{0.3 - 0.864:+.3f}"
     assert f"python recipes/report.py --results {tmp_path / 'results'}" in text
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match=r"no <method>/seed\*/summary.json under .*empty"):
@@ -215,3 +216,22 @@ def test_replacing_a_block_keeps_the_page_around_it():
     assert new == "# p\n\nprose\n\n<!-- b:begin -->\nnew\n<!-- b:end -->\n\nmore\n"
     assert pages.committed_block(new, "b") == "<!-- b:begin -->\nnew\n<!-- b:end -->"
     assert pages.replace_block("# p\n", "c", "X") == "# p\n\nX\n" and pages.committed_block("# p\n", "c") is None
+
+
+def test_gaps_to_the_paper_group_rows_by_cause_and_name_rows_without_one(tmp_path):
+    for seed, v in enumerate((0.2, 0.3)):
+        _run(tmp_path, "sac", seed, {"success_rate": v})
+    _run(tmp_path, "ddpg", 0, {"success_rate": 0.1})
+    _run(tmp_path, "sac_her", 0, {"success_rate": 0.85})
+    _run(tmp_path, "sac_demon", 0, {"success_rate": 0.5})
+    paper = tables.paper()["table1"]
+    spec = {"kind": "runs", "title": "t", "results": str(tmp_path), "paper": "table1",
+            "rows": ["sac", "ddpg", "sac_her", "sac_demon"], "columns": ["method", "success", "paper_gap"],
+            "gaps": {"threshold": 0.1, "causes": {"sac": "Cause A.", "ddpg": "Cause A."}}}
+    text = pages.render_block("t", spec, tmp_path / "p.md")
+    gap = {m: v - paper[m]["success"][0] for m, v in {"sac": 0.25, "ddpg": 0.1, "sac_her": 0.85, "sac_demon": 0.5}.items()}
+    rows = _rows(text)
+    assert [rows[m][2] for m in gap] == [f"{g:+.3f}" for g in gap.values()]
+    assert f"- `sac` ({gap['sac']:+.3f}), `ddpg` ({gap['ddpg']:+.3f}): Cause A." in text
+    assert f"- `sac_demon` ({gap['sac_demon']:+.3f}): No cause measured or stated." in text
+    assert abs(gap["sac_her"]) <= 0.1 and "`sac_her` (" not in text  # within the threshold: no cause asked

@@ -59,6 +59,9 @@ def _runs_block(name: str, block: dict, page: Path, draw: Path | None) -> list[s
         lines += [block["about"].strip(), ""]
     sections = [("Differences in mean test success:", tables.differences(ctx)),
                 ("Rows with fewer seeds than the paper's:", tables.seed_notes(ctx)),
+                (f"Rows whose test success is more than {block['gaps']['threshold']} from the paper's figure (the "
+                 "*vs paper* column), and the cause:" if block.get("gaps") else "",
+                 tables.paper_gaps(ctx)),
                 ("The paper's orderings, on our means:", tables.checks(ctx))]
     for heading, items in sections:
         if items:

@@ -369,6 +369,9 @@ COLUMNS = {
                            "transitions in the demonstration buffer at the end"),
     "note": Column("", "l", lambda ctx, row: row.spec.get("note", "")),
     "paper_success": Column("paper", "r", _paper_key("success", rate)),
+    "paper_gap": Column("vs paper", "r",
+                        lambda ctx, row: "—" if (g := _paper_gap(ctx, row)) is None else f"{g:+.3f}",
+                        "the row's mean test success minus the paper's figure for its method"),
     "paper_train_time": Column("paper", "r", _paper_key("train", hms)),
     "paper_plan_time": Column("paper", "r", _paper_key("plan_s", rate)),
     "paper_collisions": Column("paper", "r", _paper_key("collisions", count)),
@@ -440,6 +443,27 @@ def differences(ctx: Context) -> list[str]:
         out.append(f"- `{a}` − `{b}`: {ra.mean('success_rate') - rb.mean('success_rate'):+.3f} test success "
                    f"({len(ra.runs)} and {len(rb.runs)} seeds)")
     return out
+
+
+def _paper_gap(ctx: Context, row: Row) -> float | None:
+    ours, figure = row.mean("success_rate"), ctx.figures(row).get("success")
+    return None if ours is None or not figure else ours - figure[0]
+
+
+def paper_gaps(ctx: Context) -> list[str]:
+    """``gaps: {threshold, causes: {row id: text}}``: the cause of each row further than ``threshold`` (either
+    way) from the paper's test success for its method, rows of one cause together; a row without one in
+    ``causes`` is listed as having none."""
+    spec = ctx.spec.get("gaps")
+    if not spec:
+        return []
+    by_cause: dict[str, list[str]] = {}
+    for row in ctx.rows:
+        gap = _paper_gap(ctx, row)
+        if gap is not None and abs(gap) > spec["threshold"]:
+            cause = spec.get("causes", {}).get(row.id, "No cause measured or stated.").strip()
+            by_cause.setdefault(cause, []).append(f"`{row.id}` ({gap:+.3f})")
+    return [f"- {', '.join(rows)}: {cause}" for cause, rows in by_cause.items()]
 
 
 def seed_notes(ctx: Context) -> list[str]:
