@@ -1,8 +1,8 @@
-"""A trained policy on the MuJoCo twin of its task: the paper's Table 5 scenarios in simulation.
+"""A trained policy on the MuJoCo twin of its task: the paper's Free, Block and Change scenarios (Fig. 9) in simulation.
 
     python recipes/transfer.py checkpoint=results/paper_budget/sac_silp_plus/seed0 scenario=block noise=paper
     python recipes/transfer.py checkpoint=RUN_DIR                 # every scenario x noise level
-    python recipes/transfer.py checkpoint=RUN_DIR scenario=pick_place   # the pick-and-place pipeline (Fig. 9)
+    python recipes/transfer.py checkpoint=RUN_DIR scenario=pick_place   # the pick-and-place pipeline (Fig. 8)
 
 Rebuilds the run's actor from its ``config.yaml`` and checkpoint (the parameters
 it evaluated), draws the scenario's seeded tasks (``torchrl_silp.sim.scenario_tasks``)

@@ -159,7 +159,7 @@ def test_the_speed_table_reads_each_benchmark_file():
 
 
 def test_the_transfer_table_is_the_mean_over_the_policies_json():
-    block = pages.committed_block((ROOT / "docs/results/transfer.md").read_text(), "table5")
+    block = pages.committed_block((ROOT / "docs/results/transfer.md").read_text(), "fig9")
     files = sorted((ROOT / "results/transfer/sac_silp_plus_ext").glob("seed*/scenarios.json"))
     cells = [row for f in files for row in json.loads(f.read_text())["rows"]
              if row["scenario"] == "change" and row["noise"] == "paper"]

@@ -235,3 +235,17 @@ def test_gaps_to_the_paper_group_rows_by_cause_and_name_rows_without_one(tmp_pat
     assert f"- `sac` ({gap['sac']:+.3f}), `ddpg` ({gap['ddpg']:+.3f}): Cause A." in text
     assert f"- `sac_demon` ({gap['sac_demon']:+.3f}): No cause measured or stated." in text
     assert abs(gap["sac_her"]) <= 0.1 and "`sac_her` (" not in text  # within the threshold: no cause asked
+
+
+def test_an_ordering_of_spreads_reads_each_rows_std_over_seeds(tmp_path):
+    wide, narrow = np.array([0.2, 0.6, 0.9]), np.array([0.5, 0.52, 0.55])
+    for seed in range(3):
+        _run(tmp_path, "ddpg_her", seed, {"success_rate": float(wide[seed])})
+        _run(tmp_path, "ddpg", seed, {"success_rate": float(narrow[seed])})
+    spec = {"kind": "runs", "title": "t", "results": str(tmp_path), "rows": ["ddpg_her", "ddpg"],
+            "columns": ["method", "success"],
+            "checks": [{"text": "HER spreads most", "all": [{"order": ["ddpg_her", "ddpg"], "stat": "std", "strict": True}]},
+                       {"text": "HER on top", "all": [{"order": ["ddpg_her", "ddpg"], "strict": True}]}]}
+    text = pages.render_block("t", spec, tmp_path / "p.md")
+    assert f"- holds: HER spreads most (`ddpg_her` (std) {wide.std():.3f} > `ddpg` (std) {narrow.std():.3f})" in text
+    assert wide.mean() > narrow.mean() and f"- holds: HER on top (`ddpg_her` {wide.mean():.3f} > `ddpg` {narrow.mean():.3f})" in text

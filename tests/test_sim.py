@@ -196,7 +196,7 @@ def test_mujoco_labels_are_the_twins_contacts_and_within_the_exact_checks(model)
     assert torch.equal(twin.colliding(), labels[:7])
 
 
-# ------------------------------------------------------------------ pick-and-place (Fig. 9)
+# ------------------------------------------------------------------ pick-and-place (Fig. 8)
 def ik_policy(model):
     """Straight joint-space moves to the IK solution of the goal: an oracle that ignores the box. It solves
     once per goal, from the configuration it is first asked at."""

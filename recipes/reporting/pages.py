@@ -129,7 +129,7 @@ def _transfer_block(name: str, block: dict, page: Path, draw: Path | None) -> li
                 n_tasks.add(cells[0]["n_tasks"])
                 control.update((r["control_dt"], r["max_steps"]) for r in results[method])
                 times = [c["time_to_success_s"] for c in cells if c["time_to_success_s"] is not None]
-                figure = paper()["table5"][scenario] if method in block["paper_rows"] else {}
+                figure = paper()["fig9"][scenario] if method in block["paper_rows"] else {}
                 rows.append([block["labels"][method], scenario, noise, mean_std(c["success_rate"] for c in cells),
                              mean_std(c["collision_rate"] for c in cells), mean_std(times, lambda x: f"{x:.2f}"),
                              str(len(cells)), paper_cell(figure.get("simulation"), lambda x: f"{x:.2f}"),

@@ -194,6 +194,10 @@ class Row:
         values = self.values(key)
         return float(np.mean(values)) if values else None
 
+    def std(self, key: str) -> float | None:
+        values = self.values(key)
+        return float(np.std(values)) if values else None
+
 
 def build_rows(spec: dict, loader: Callable[[str], dict[str, list[Run]]]) -> list[Row]:
     """The block's rows: its ``rows`` list (or ``all``: every method of its results folder, by name)."""
@@ -408,8 +412,9 @@ def runs_table(ctx: Context) -> tuple[str, list[str]]:
 def checks(ctx: Context) -> list[str]:
     """The block's ``checks``: each holds when every one of its orderings holds on the rows' means.
 
-    An ordering ``{order: [a, b, c], key: success_rate, strict: false}`` reads ``a ≥ b ≥ c``; a list in
-    ``checks`` (a YAML alias of a list of checks) counts as its items.
+    An ordering ``{order: [a, b, c], key: success_rate, strict: false}`` reads ``a ≥ b ≥ c`` of the rows'
+    means (``stat: std``: of their spreads over seeds, ddof=0); a list in ``checks`` (a YAML alias of a list
+    of checks) counts as its items.
     """
     out = []
     listed = ctx.spec.get("checks", [])
@@ -417,7 +422,8 @@ def checks(ctx: Context) -> list[str]:
         parts, holds, missing = [], True, []
         for ordering in check["all"]:
             key, strict = ordering.get("key", "success_rate"), ordering.get("strict", False)
-            values = [ctx.by_id[m].mean(key) if m in ctx.by_id else None for m in ordering["order"]]
+            stat = ordering.get("stat", "mean")
+            values = [getattr(ctx.by_id[m], stat)(key) if m in ctx.by_id else None for m in ordering["order"]]
             missing += [m for m, v in zip(ordering["order"], values) if v is None and m not in missing]
             if any(v is None for v in values):
                 continue
@@ -425,7 +431,8 @@ def checks(ctx: Context) -> list[str]:
             fmt = rate if max(abs(v) for v in values) < 1 and key.endswith("rate") else (
                 count if max(values) >= 100 else seconds3(values))
             sign = " > " if strict else " ≥ "
-            parts.append(sign.join(f"`{m}` {fmt(v)}" for m, v in zip(ordering["order"], values)))
+            of = " (std)" if stat == "std" else ""
+            parts.append(sign.join(f"`{m}`{of} {fmt(v)}" for m, v in zip(ordering["order"], values)))
         if missing:
             out.append(f"- not run: {check['text']} (missing: {', '.join(f'`{m}`' for m in missing)})")
         else:

@@ -1,4 +1,4 @@
-"""The paper's pick-and-place pipeline (sec. 4.5, Fig. 9) on the MuJoCo twin, with a reaching policy doing the moves.
+"""The paper's pick-and-place pipeline (sec. 4.5, Fig. 8) on the MuJoCo twin, with a reaching policy doing the moves.
 
 A trial: perceive the cube, the basket and the box (with noise); reach the pre-grasp pose
 20 cm above the cube with the policy; go down until the fingertips are just above the cube,
