@@ -249,3 +249,31 @@ def test_an_ordering_of_spreads_reads_each_rows_std_over_seeds(tmp_path):
     text = pages.render_block("t", spec, tmp_path / "p.md")
     assert f"- holds: HER spreads most (`ddpg_her` (std) {wide.std():.3f} > `ddpg` (std) {narrow.std():.3f})" in text
     assert wide.mean() > narrow.mean() and f"- holds: HER on top (`ddpg_her` {wide.mean():.3f} > `ddpg` {narrow.mean():.3f})" in text
+
+
+def test_the_planning_rows_read_the_benchmarks_table_and_check_each_trend(tmp_path):
+    bench = tmp_path / "planner.txt"
+    rows = [("random", "0.10", "0.900", "2.50", "0.20"), ("random", "0.20", "0.950", "1.50", "0.30"),
+            ("scripted", "0.10", "0.700", "3.00", "0.10"), ("scripted", "0.20", "0.650", "2.00", "0.05")]
+    bench.write_text("$ python benchmarks/planner.py --threads 1\ntorch 2.13.0+cpu, cpu; seed 0\n\n"
+                     "### Planning vs the roadmap distance d (Table A.1), B = 4\n\n"
+                     "| rollouts | d (m) | SR pairs | path edges | ms/plan |\n|:--|--:|--:|--:|--:|\n"
+                     + "".join(f"| {' | '.join(r)} |\n" for r in rows) + "\nnotes\n")
+    spec = {"file": str(bench), "table": "Planning vs the roadmap distance d", "kind_column": "rollouts",
+            "parameter_column": "d (m)", "paper": "tableA1",
+            "columns": {"0.10": "sac_silp_plus_d0.10", "0.20": "sac_silp_plus_d0.20"},
+            "measures": {"SR pairs": ["SR", "planning_success", ".3f"], "ms/plan": ["time (s)", "plan_s", ".4f", 0.001]},
+            "trends": [{"text": "SR rises", "measure": "SR pairs", "order": "increasing"},
+                       {"text": "time falls", "measure": "ms/plan", "order": "decreasing"}]}
+    text = "\n".join(tables.planning_table(spec, tmp_path / "p.md"))
+    paper = tables.paper()["tableA1"]
+    assert "| SR | random | 0.900 | 0.950 |" in text and "| SR | scripted | 0.700 | 0.650 |" in text
+    assert f"| SR | the paper | {paper['sac_silp_plus_d0.10']['planning_success']:.3f} | " \
+           f"{paper['sac_silp_plus_d0.20']['planning_success']:.3f} |" in text
+    assert "| time (s) | random | 0.0002 | 0.0003 |" in text  # ms to the paper's seconds
+    assert f"| time (s) | the paper | {paper['sac_silp_plus_d0.10']['plan_s'][0]:.4f} |" in text
+    assert "- holds: SR rises, random roadmaps (SR pairs: 0.900 ≤ 0.950)" in text
+    assert "- does not hold: SR rises, scripted roadmaps (SR pairs: 0.700 ≤ 0.650)" in text
+    assert "- does not hold: time falls, random roadmaps (ms/plan: 0.20 ≥ 0.30)" in text
+    assert "- holds: time falls, scripted roadmaps (ms/plan: 0.10 ≥ 0.05)" in text
+    assert "Made by: `python benchmarks/planner.py --threads 1`" in text

@@ -132,11 +132,12 @@ def test_sweep_report_and_restart(tmp_path, capsys):
             runs = [summaries[m, s] for s in SEEDS]
             assert cells[1] == "paper's"  # the baselines' method configs hold the paper's settings
             assert _agrees(cells[2], np.mean([r["success_rate"] for r in runs])), cells
-            assert _agrees(cells[4], np.mean([r["train_wall_s"] for r in runs])), cells
-            assert _agrees(cells[6], np.mean([r["rollout_time_per_episode_s"] for r in runs])), cells
-            assert cells[8] == "2"
+            assert _agrees(cells[5], np.mean([r["train_wall_s"] for r in runs])), cells
+            assert _agrees(cells[7], np.mean([r["rollout_time_per_episode_s"] for r in runs])), cells
+            assert cells[9] == "2"
             paper = yaml.safe_load((RECIPES / "reporting" / "paper.yaml").read_text())["table1"][m]["success"]
             assert cells[3] == f"{paper[0]:.3f} ({paper[1]:.3f})"
+            assert _agrees(cells[4], np.mean([r["success_rate"] for r in runs]) - paper[0]), cells
         assert "- `sac`: 2 of 3 seeds (seeds 0, 1)" in block and "- `sac_silp_plus`: not run" in block
         assert "not run: SAC-SILP+ ≥ SAC-Demon ≥ SAC" in block
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -236,6 +236,23 @@ def _parse_tables(lines: list[str]) -> dict:
     return out
 
 
+def markdown_tables(path: Path) -> dict[str, tuple[list[str], list[list[str]]]]:
+    """A benchmark output's markdown tables by their ``### `` title: ``(header, rows of cells)``."""
+    tables, title = {}, None
+    for line in Path(path).read_text().splitlines():
+        if line.startswith("### "):
+            title = line[4:].strip()
+        elif line.startswith("|") and title is not None:
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if title not in tables:
+                tables[title] = (cells, [])
+            elif not set(line) <= set("|:- "):
+                tables[title][1].append(cells)
+        else:
+            title = title if title is not None and title not in tables else None
+    return tables
+
+
 PARSERS = {"update_step.py": _parse_timings, "time_to_success.py": _parse_summary, "rollout_time.py": _parse_rollouts,
            "env_throughput.py": _parse_throughput, "planner.py": _parse_tables}
 

@@ -57,6 +57,8 @@ def _runs_block(name: str, block: dict, page: Path, draw: Path | None) -> list[s
         lines += ["Mean (std) over seeds (ddof=0). " + "; ".join(about) + ".", ""]
     if block.get("about"):
         lines += [block["about"].strip(), ""]
+    if block.get("planning"):
+        lines += tables.planning_table(block["planning"], page)
     sections = [("Differences in mean test success:", tables.differences(ctx)),
                 ("Rows with fewer seeds than the paper's:", tables.seed_notes(ctx)),
                 (f"Rows whose test success is more than {block['gaps']['threshold']} from the paper's figure (the "

@@ -452,6 +452,59 @@ def differences(ctx: Context) -> list[str]:
     return out
 
 
+def planning_table(spec: dict, page: Path) -> list[str]:
+    """A block's ``planning``: the planner's figures against a parameter, one column per value, from the
+    markdown table of a benchmark output whose title starts with ``table``; the paper's figures beside (its
+    table ``paper`` of paper.yaml, ``{method: {figure: value}}``, the methods in ``columns`` order) and the
+    paper's trends (``trends: [{text, measure, order: increasing | decreasing}]``) checked on each kind.
+
+    ``spec``: ``{file, table, kind_column, parameter_column, columns: {value: paper method}, measures:
+    {benchmark column: [label, paper figure or null, format, factor to the paper's unit (1)]}, trends}``.
+    """
+    path = Path(spec["file"])
+    found = {t: v for t, v in load.markdown_tables(path).items() if t.startswith(spec["table"])}
+    if not found:
+        raise ValueError(f"{path}: no table titled {spec['table']!r}...")
+    title, (header, cells) = next(iter(found.items()))
+    kind_at, value_at = header.index(spec["kind_column"]), header.index(spec["parameter_column"])
+    values = list(spec["columns"])
+    data: dict[str, dict[str, dict[str, float]]] = {}
+    texts: dict[str, dict[str, dict[str, str]]] = {}
+    for row in cells:
+        data.setdefault(row[kind_at], {})[row[value_at]] = {h: load._number(c) for h, c in zip(header, row)}
+        texts.setdefault(row[kind_at], {})[row[value_at]] = dict(zip(header, row))
+    figures = paper().get(spec["paper"], {})
+    out = []
+    for measure, (label, paper_key, fmt, *scale) in spec["measures"].items():
+        factor = scale[0] if scale else 1.0
+        for kind, by_value in data.items():
+            out.append([label, kind] + [format(by_value[v][measure] * factor, fmt) if v in by_value else "—"
+                                        for v in values])
+        if paper_key:
+            out.append([label, "the paper"] + [
+                format(figures[m][paper_key][0] if isinstance(figures[m][paper_key], list) else figures[m][paper_key],
+                       fmt) if paper_key in figures.get(m, {}) else "—" for m in spec["columns"].values()])
+    lines = [f"Planning against {spec['parameter_column']}, from `{path}` (its table \"{title}\"):", "",
+             table(["Measure", "Roadmaps", *values], out, ["l", "l", *["r"] * len(values)]), ""]
+    checks = []
+    for trend in spec.get("trends", []):
+        for kind, by_value in data.items():
+            series = [by_value[v][trend["measure"]] for v in values if v in by_value]
+            pairs = list(zip(series, series[1:]))
+            holds = all(b >= a for a, b in pairs) if trend["order"] == "increasing" else all(b <= a for a, b in pairs)
+            sign = " ≤ " if trend["order"] == "increasing" else " ≥ "
+            shown = [texts[kind][v][trend["measure"]] for v in values if v in by_value]
+            checks.append(f"- {'holds' if holds else 'does not hold'}: {trend['text']}, {kind} roadmaps "
+                          f"({trend['measure']}: {sign.join(shown)})")
+    if checks:
+        lines += ["The paper's trends, on these roadmaps:", "", *checks, ""]
+    benchmark = load.load_benchmark(path)
+    busy = " (not alone: other work ran beside it)" if "WARNING: load average" in path.read_text() else ""
+    lines += [f"Machine: {benchmark.machine}{busy}. Made by: `{benchmark.command}`. "
+              f"{spec.get('about', '').strip()}".strip(), ""]
+    return lines
+
+
 def _paper_gap(ctx: Context, row: Row) -> float | None:
     ours, figure = row.mean("success_rate"), ctx.figures(row).get("success")
     return None if ours is None or not figure else ours - figure[0]
