@@ -5,6 +5,11 @@ user would. The arm's base sits at the origin of the plane; its links (0.4, 0.3,
 segments of half-width 0.025 m; each episode draws ``n_discs`` discs and a start and goal pose.
 A configuration collides when a link meets a disc, or the last link meets the first (self).
 
+The discs lie in the ring the outer links sweep (0.5 to 0.8 m from the base), and the base joint
+turns through two full turns (starts and goals are drawn within one), so the arm can always swing
+round either way: nearly every task can be solved within the 50 steps of an episode (the share a
+search of the whole joint space solves is ``solvable_share``).
+
 Train SILP+ on it with the main job, no file of the repository changed (run from the repo root,
 where ``examples`` is importable)::
 
@@ -29,7 +34,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from torchrl_silp.models import TaskModel
 
-__all__ = ["PlanarArmReach"]
+__all__ = ["PlanarArmReach", "solvable_share"]
 
 LINKS = (0.4, 0.3, 0.2)
 HALF_WIDTH = 0.025
@@ -60,10 +65,12 @@ def _segment_distance(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, d: torc
 class PlanarArmReach(TaskModel):
     """A planar 3-link arm reaching a goal point among ``n_discs`` random discs.
 
-    The configuration is the three joint angles (the first about the base, within ``[-pi, pi]``;
-    the others within ``[-2.5, 2.5]`` rad); the achieved goal is the tip of the last link; the scene
-    is ``"discs"`` ``(n_discs, 3)``: centre x, y and radius. Tasks keep the paper's rule with the first
-    disc (start-goal > start-disc > disc-goal), so that it tends to lie between start and goal.
+    The configuration is the three joint angles (the first about the base, within ``[-2 pi, 2 pi]``
+    so that it turns either way from any start drawn within ``[-pi, pi]``; the others within
+    ``[-2.5, 2.5]`` rad); the achieved goal is the tip of the last link; the scene is ``"discs"``
+    ``(n_discs, 3)``: centre x, y and radius, the centres 0.5 to 0.8 m from the base. Tasks keep the
+    paper's rule with the first disc (start-goal > start-disc > disc-goal), so that it tends to lie
+    between start and goal.
 
     Args:
         n_discs: discs per episode.
@@ -88,8 +95,11 @@ class PlanarArmReach(TaskModel):
 
     def _make_tensors(self) -> None:
         f = dict(device=self.device, dtype=self.dtype)
-        self.config_low = torch.tensor([-math.pi, -2.5, -2.5], **f)
-        self.config_high = torch.tensor([math.pi, 2.5, 2.5], **f)
+        self.config_low = torch.tensor([-2 * math.pi, -2.5, -2.5], **f)
+        self.config_high = torch.tensor([2 * math.pi, 2.5, 2.5], **f)
+        # where starts and goals are drawn: one turn of the base
+        self.task_low = torch.tensor([-math.pi, -2.5, -2.5], **f)
+        self.task_high = torch.tensor([math.pi, 2.5, 2.5], **f)
         self.links = torch.tensor(LINKS, **f)
 
     def to(self, device) -> "PlanarArmReach":
@@ -151,8 +161,8 @@ class PlanarArmReach(TaskModel):
         while have < n:
             m = 8 * (n - have) + 64
             u = torch.rand(2, m, 3, generator=generator, **f)
-            q = self.config_low + u * (self.config_high - self.config_low)
-            r = 0.2 + 0.5 * torch.rand(m, self.n_discs, generator=generator, **f)
+            q = self.task_low + u * (self.task_high - self.task_low)
+            r = 0.5 + 0.3 * torch.rand(m, self.n_discs, generator=generator, **f)
             phi = 2 * math.pi * torch.rand(m, self.n_discs, generator=generator, **f)
             radius = 0.06 + 0.06 * torch.rand(m, self.n_discs, generator=generator, **f)
             discs = torch.stack([r * phi.cos(), r * phi.sin(), radius], -1)
@@ -169,3 +179,56 @@ class PlanarArmReach(TaskModel):
                 }, batch_size=[keep.numel()]))
                 have += keep.numel()
         return torch.cat(out) if len(out) > 1 else out[0]
+
+
+def solvable(model: PlanarArmReach, tasks: TensorDictBase, max_steps: int = 50) -> torch.Tensor:
+    """Which tasks ``[n]`` a search of the whole joint space solves within ``max_steps`` steps (bool ``[n]``).
+
+    The joint box is a grid of ``model.action_scale`` spacing, on which one step reaches the 26
+    neighbouring cells (every joint moves by at most one action); a breadth-first search from the
+    start's nearest cell through the collision-free cells, by ``max_steps`` dilations, looks for a
+    cell whose tip lies within ``success_distance`` of the goal. Motions between neighbouring cells
+    are not checked (a cell is 0.1 rad across), so this is the share an ideal policy could reach,
+    not a bound a trained one is held to.
+    """
+    h = model.action_scale
+    low, high = model.config_low, model.config_high
+    axes = [torch.arange(float(lo), float(hi) + 1e-6, h, dtype=model.dtype) for lo, hi in zip(low, high)]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
+    shape, cells = grid.shape[:3], grid.reshape(-1, 3)
+    tips = model.achieved_goal(cells)
+    out = torch.zeros(len(tasks), dtype=torch.bool)
+    for i in range(len(tasks)):  # one task's grid at a time: 300k cells
+        task = tasks[i]
+        discs = task.get("discs").unsqueeze(0).expand(cells.shape[0], -1, -1)
+        free = (model.collision_flags(cells, discs)[0].squeeze(-1) == 0).reshape(shape)
+        goal = ((tips - task.get(model.desired_goal_key)).norm(dim=-1) <= model.success_distance).reshape(shape) & free
+        start = ((task.get(model.config_key) - low) / h).round().long().tolist()
+        front = torch.zeros(shape, dtype=model.dtype)
+        front[tuple(start)] = 1.0
+        for _ in range(max_steps):
+            front = torch.nn.functional.max_pool3d(front[None, None], 3, stride=1, padding=1)[0, 0] * free
+            if bool((front.bool() & goal).any()):
+                out[i] = True
+                break
+    return out
+
+
+def solvable_share(n_tasks: int = 1000, seed: int = 20231101, max_steps: int = 50, n_discs: int = 3) -> float:
+    """The share of the main job's test tasks (``eval.test_seed``'s, as ``ReachEnv`` draws them) that
+    :func:`solvable` solves."""
+    from torchrl_silp.envs import ReachEnv
+
+    model = PlanarArmReach(n_discs=n_discs)
+    tasks = ReachEnv(model, num_envs=n_tasks, seed=seed).reset()
+    return solvable(model, tasks, max_steps).float().mean().item()
+
+
+if __name__ == "__main__":  # python examples/planar_arm.py [n_tasks]: the share of the test tasks an ideal policy solves
+    import json
+    import sys
+
+    torch.set_num_threads(1)
+    n = int(sys.argv[1]) if len(sys.argv) > 1 else 1000
+    share = solvable_share(n)
+    print(json.dumps({"n_tasks": n, "seed": 20231101, "max_steps": 50, "solvable_share": share}))
