@@ -274,10 +274,14 @@ class TransferConfig:
     scenario: str = "all"
     noise: str = "all"
     n_tasks: int = 100
+    trials: int = 10
+    task_seed: int = 0
     seed: int = 0
     control_dt: float = 0.1
     max_steps: Optional[int] = None
     out: Optional[str] = None
+    run_dir: Optional[str] = None
+    resume: bool = False
     pictures: Optional[str] = None
     device: str = "cpu"
     threads: int = 1

@@ -277,3 +277,34 @@ def test_the_planning_rows_read_the_benchmarks_table_and_check_each_trend(tmp_pa
     assert "- does not hold: time falls, random roadmaps (ms/plan: 0.20 ≥ 0.30)" in text
     assert "- holds: time falls, scripted roadmaps (ms/plan: 0.10 ≥ 0.05)" in text
     assert "Made by: `python benchmarks/planner.py --threads 1`" in text
+
+
+def test_table5_means_each_policys_reaching_trials_over_seeds_and_checks_the_papers_order(tmp_path):
+    rng = np.random.default_rng(1)
+    shares = {}
+    for method in ("table5_a", "table5_b"):
+        for seed in range(3):
+            per = rng.integers(0, 11, 10) / 10  # ten scenarios of ten trials
+            shares[method, seed] = per
+            row = {"scenario": "reaching", "noise": "paper", "n_tasks": 100, "success_rate": float(per.mean()),
+                   "collision_rate": 0.01 * seed, "scenario_success": per.tolist()}
+            run = tmp_path / method / f"seed{seed}"
+            run.mkdir(parents=True)
+            (run / "summary.json").write_text(json.dumps({"method": method, "seed": seed, "rows": [row]}))
+    spec = {"kind": "reaching", "title": "t5", "results": str(tmp_path), "sweep_config": "s.yaml", "paper": "table5",
+            "noises": ["none", "paper"],
+            "rows": [{"method": "table5_a", "paper": "sac_silp_plus", "label": "A"},
+                     {"method": "table5_b", "paper": "sac_demon", "label": "B"}],
+            "checks": [{"text": "A ≥ B", "noise": "paper", "order": ["table5_a", "table5_b"]},
+                       {"text": "A ≥ B unnoised", "noise": "none", "order": ["table5_a", "table5_b"]}]}
+    text = pages.render_block("table5", spec, tmp_path / "p.md")
+    success = {m: np.array([shares[m, s].mean() for s in range(3)]) for m in ("table5_a", "table5_b")}
+    paper = tables.paper()["table5"]
+    assert (f"| A | paper | {success['table5_a'].mean():.3f} ({success['table5_a'].std():.3f}) | 0.010 (0.008) | 3 | "
+            f"{paper['sac_silp_plus']['simulation'][0]:.3f} | {paper['sac_silp_plus']['real'][0]:.3f} |") in text
+    assert "| A | none | not run | — | 0 |" in text
+    per_a = np.mean([shares["table5_a", s] for s in range(3)], axis=0)
+    assert "| A | paper | " + " | ".join(f"{x:.2f}" for x in per_a) + " |" in text
+    holds = success["table5_a"].mean() >= success["table5_b"].mean()
+    assert f"- {'holds' if holds else 'does not hold'}: A ≥ B (`table5_a` {success['table5_a'].mean():.3f}" in text
+    assert "- not run: A ≥ B unnoised" in text

@@ -183,6 +183,34 @@ def test_transfer_recipe_runs_a_checkpoint_and_writes_its_results(still_run, tmp
         transfer.run(compose("transfer", [f"checkpoint={tmp_path}"]))
 
 
+def test_reaching_trials_repeat_free_then_blocked_scenarios(model):
+    from torchrl_silp.sim import reaching_trials, scenario_tasks
+
+    tasks = reaching_trials(model, n_free=2, n_block=3, trials=4, seed=7)
+    assert tasks.batch_size == (20,) and tasks["scenario"].tolist() == [i for i in range(5) for _ in range(4)]
+    free, block = scenario_tasks(model, "free", 2, seed=7), scenario_tasks(model, "block", 3, seed=8)
+    for i, scenario in enumerate([*free.unbind(0), *block.unbind(0)]):
+        for trial in tasks[4 * i:4 * i + 4].unbind(0):
+            for key in ("joint_position", "desired_goal", "obstacle"):
+                assert torch.equal(trial[key], scenario[key]), (i, key)
+    with pytest.raises(ValueError, match="trials"):
+        reaching_trials(model, trials=0)
+
+
+def test_the_reaching_test_as_a_sweep_run_writes_each_scenarios_share_to_its_summary(still_run, tmp_path):
+    from torchrl_silp.recipes import transfer
+
+    run_dir = tmp_path / "table5_sac" / "seed0"
+    cfg = compose("transfer", [f"checkpoint={still_run}", "scenario=reaching", "noise=paper", "trials=2",
+                               "max_steps=3", f"run_dir={run_dir}", "seed=0", "resume=true"])
+    result = transfer.run(cfg)
+    saved = json.loads((run_dir / "summary.json").read_text())
+    (row,) = saved["rows"]
+    # ten scenarios of two trials; the still arm reaches none of its goals and hits no box it starts clear of
+    assert row["scenario"] == "reaching" and row["n_tasks"] == 20 and row["scenario_success"] == [0.0] * 10
+    assert row["collision_rate"] == 0.0 and saved == json.loads(json.dumps(result))
+
+
 def test_mujoco_labels_are_the_twins_contacts_and_within_the_exact_checks(model):
     from torchrl_silp.models.learned_collision import collision_dataset
     from torchrl_silp.sim import mujoco_labels

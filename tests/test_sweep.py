@@ -206,3 +206,27 @@ def test_each_grid_started_again_composes_its_committed_runs(config_name):
             was = OmegaConf.select(committed, key, default=missing)
             if was is not missing:
                 assert OmegaConf.select(composed, key) == was, (run.name, key)
+
+
+def test_table5s_grid_trains_then_runs_the_reaching_test_on_each_checkpoint(tmp_path):
+    """sweep_table5: a training run, then recipes/transfer.py on its checkpoint as a run of the sweep's own
+    (its summary.json the test's result); the report's table5 block reads what it wrote."""
+    from torchrl_silp.recipes.reporting import pages
+
+    pytest.importorskip("mujoco")
+    quoted = ",".join(f"'{o}'" for o in TINY)
+    cfg = sweep.load_config([f"results_dir={tmp_path}", "seeds=[0]", "methods=[sac_demon,table5_sac_demon]",
+                             f"overrides.sac_silp=[{quoted}]", "overrides.transfer=['trials=2','max_steps=5']",
+                             "fresh_worker=false", "ray.num_cpus=1"], config_name="sweep_table5")
+    results = sweep.run_sweep(cfg)
+    assert [r["status"] for r in results] == ["ok", "ok"]
+    summary = json.loads((tmp_path / "table5_sac_demon" / "seed0" / "summary.json").read_text())
+    assert summary["checkpoint"] == str(tmp_path / "sac_demon" / "seed0")
+    assert [(r["scenario"], r["noise"]) for r in summary["rows"]] == [("reaching", n) for n in ("none", "paper", "double")]
+    row = summary["rows"][1]
+    assert row["n_tasks"] == 20 and len(row["scenario_success"]) == 10
+    assert row["success_rate"] == pytest.approx(np.mean(row["scenario_success"]))
+    block = dict(pages.spec()["blocks"]["table5"], results=str(tmp_path), noises=["paper"])
+    text = pages.render_block("table5", block, tmp_path / "p.md")
+    assert f"| the paper's SAC-Demon as written (`sac_demon`: SILP+ without the BC term, GP recovery included) | paper | " \
+           f"{row['success_rate']:.3f} | {row['collision_rate']:.3f} | 1 |" in text

@@ -15,10 +15,13 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import re
 import shlex
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from . import figures, load, tables
 from .tables import Context, mean_std, paper, paper_cell, rate, relpath, table
@@ -152,6 +155,59 @@ def _transfer_block(name: str, block: dict, page: Path, draw: Path | None) -> li
             f"checkpoint=RUN_DIR`); regenerate with `python recipes/report.py --block {name}`.", ""]
 
 
+def _reaching_block(name: str, block: dict, page: Path, draw: Path | None) -> list[str]:
+    """Table 5: each policy's share of the reaching test's trials per noise level, mean (std) over seeds, and
+    each scenario's share; the paper's figures beside; the paper's orderings on the ``checks`` noise level."""
+    folder = Path(block["results"])
+    found = {row["method"]: [json.loads(p.read_text()) for p in sorted((folder / row["method"]).glob("seed*/summary.json"))]
+             for row in block["rows"]}
+    figures = paper()[block["paper"]]
+    rows, per_scenario, means, shapes = [], [], {}, set()
+    for spec in block["rows"]:
+        results = found[spec["method"]]
+        figure = figures.get(spec["paper"], {})
+        for noise in block["noises"]:
+            cells = [row for r in results for row in r["rows"] if row["scenario"] == "reaching" and row["noise"] == noise]
+            if not cells:
+                rows.append([spec["label"], noise, "not run", "—", "0", paper_cell(figure.get("simulation"), rate),
+                             paper_cell(figure.get("real"), rate)])
+                continue
+            shapes.update((len(c["scenario_success"]), c["n_tasks"] // len(c["scenario_success"])) for c in cells)
+            means[spec["method"], noise] = float(np.mean([c["success_rate"] for c in cells]))
+            rows.append([spec["label"], noise, mean_std(c["success_rate"] for c in cells),
+                         mean_std(c["collision_rate"] for c in cells), str(len(cells)),
+                         paper_cell(figure.get("simulation"), rate), paper_cell(figure.get("real"), rate)])
+            shares = np.mean([c["scenario_success"] for c in cells], axis=0)
+            per_scenario.append([spec["label"], noise, *(f"{x:.2f}" for x in shares)])
+    lines = [table(["Method", "Noise", "Success", "Collisions", "Seeds", "paper, simulation", "paper, real UR5e"], rows,
+                   ["l", "l", *"r" * 5]), ""]
+    if per_scenario:
+        n = max(len(r) for r in per_scenario) - 2
+        lines += ["Each scenario's share of its trials (mean over seeds; 1-5 *free*, 6-10 *block*):", "",
+                  table(["Method", "Noise", *map(str, range(1, n + 1))], per_scenario, ["l", "l", *"r" * n]), ""]
+    shape = ", ".join(f"{s} scenarios of {t} trials" for s, t in sorted(shapes)) or "10 scenarios of 10 trials"
+    lines += [f"Mean (std) over the policies' seeds; {shape} (`torchrl_silp.sim.reaching_trials`), the trials of "
+              "a scenario differing in what perception draws; success and collisions as in Fig. 9's block. The "
+              "paper's columns: its Table 5, 100 trials of each policy in 10 scenarios it does not list, in "
+              "simulation and on the real UR5e.", ""]
+    checks = []
+    for check in block.get("checks", []):
+        noise, order = check["noise"], check["order"]
+        values = [means.get((m, noise)) for m in order]
+        if any(v is None for v in values):
+            checks.append(f"- not run: {check['text']}")
+            continue
+        holds = all(a >= b for a, b in zip(values, values[1:]))
+        checks.append(f"- {'holds' if holds else 'does not hold'}: {check['text']} ("
+                      + " ≥ ".join(f"`{m}` {v:.3f}" for m, v in zip(order, values)) + ")")
+    if checks:
+        lines += ["The paper's orderings, on our means:", "", *checks, ""]
+    lines += [f"Files: `{folder}/<method>/seed<k>/summary.json` (sweep config `{block['sweep_config']}`: the training runs "
+              "and, after each, `recipes/transfer.py scenario=reaching` on its checkpoint); regenerate with "
+              f"`python recipes/report.py --block {name}`.", ""]
+    return lines
+
+
 def _pick_place_block(name: str, block: dict, page: Path, draw: Path | None) -> list[str]:
     folder = Path(block["results"])
     results = load.load_transfer(folder)
@@ -226,7 +282,7 @@ def _collision_net_block(name: str, block: dict, page: Path, draw: Path | None) 
 
 
 KINDS = {"runs": _runs_block, "headline": _headline_block, "benchmarks": _benchmarks_block,
-         "transfer": _transfer_block, "pick_place": _pick_place_block, "collision_net": _collision_net_block}
+         "transfer": _transfer_block, "reaching": _reaching_block, "pick_place": _pick_place_block, "collision_net": _collision_net_block}
 _drawing = False  # set by write(): --check and tests render the text without drawing
 
 

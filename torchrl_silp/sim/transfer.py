@@ -2,7 +2,8 @@
 
 The paper's real-robot scenarios (sec. 4.5): *Free* (the straight path from start to
 goal is clear of the box), *Block* (the box stands in that path) and *Change* (the
-path starts clear and the box moves into it during the motion).
+path starts clear and the box moves into it during the motion); and the reaching test of
+its Table 5, ten fixed scenarios run ten times each (:func:`reaching_trials`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_silp.sim.twin import MujocoTwin
 from torchrl_silp.validation import check_choice, check_nonnegative_float, check_nonnegative_int, check_positive_float, check_positive_int
 
-__all__ = ["Perception", "NOISE_LEVELS", "SCENARIOS", "scenario_tasks", "run_transfer"]
+__all__ = ["Perception", "NOISE_LEVELS", "SCENARIOS", "scenario_tasks", "reaching_trials", "run_transfer"]
 
 SCENARIOS = ("free", "block", "change")
 
@@ -125,6 +126,34 @@ def scenario_tasks(model, scenario: str, n: int, seed: int, *, margin: float = 0
     else:
         raise RuntimeError(f"could not draw {n} {scenario} tasks with margin {margin} (got {total})")
     return torch.cat(picked)[:n]
+
+
+def reaching_trials(model, *, n_free: int = 5, n_block: int = 5, trials: int = 10, seed: int = 0,
+                    margin: float = 0.03) -> TensorDict:
+    """The reaching test of the paper's Table 5: fixed scenarios (a box, a goal and a start pose each), each
+    run ``trials`` times.
+
+    The paper runs its two policies "for ten trials in each scenario" of "10 different scenarios with
+    different obstacles, goals, and initial robot poses" and does not list them; here they are ``n_free``
+    *free* and ``n_block`` *block* tasks of :func:`scenario_tasks` (seeds ``seed`` and ``seed + 1``). The
+    trials of one scenario are the same task: they differ in what perception draws (:class:`Perception`)
+    when :func:`run_transfer` runs them.
+
+    Returns a TensorDict ``[(n_free + n_block) * trials]``, scenario-major, with the tasks' keys and
+    ``"scenario"`` (long, the scenario's index: the free ones first).
+    """
+    for name, value in (("n_free", n_free), ("n_block", n_block)):
+        check_nonnegative_int(value, name=name)
+    check_positive_int(trials, name="trials")
+    if n_free + n_block == 0:
+        raise ValueError("n_free + n_block must be positive: no scenario to run")
+    parts = [scenario_tasks(model, kind, n, seed=seed + i, margin=margin)
+             for i, (kind, n) in enumerate((("free", n_free), ("block", n_block))) if n > 0]
+    scenarios = torch.cat(parts) if len(parts) > 1 else parts[0]
+    index = torch.arange(len(scenarios)).repeat_interleave(trials)
+    out = scenarios[index]
+    out.set("scenario", index)
+    return out
 
 
 def _box_at(tasks: TensorDict, t: float) -> torch.Tensor:
