@@ -245,10 +245,12 @@ def test_an_ordering_of_spreads_reads_each_rows_std_over_seeds(tmp_path):
     spec = {"kind": "runs", "title": "t", "results": str(tmp_path), "rows": ["ddpg_her", "ddpg"],
             "columns": ["method", "success"],
             "checks": [{"text": "HER spreads most", "all": [{"order": ["ddpg_her", "ddpg"], "stat": "std", "strict": True}]},
-                       {"text": "HER on top", "all": [{"order": ["ddpg_her", "ddpg"], "strict": True}]}]}
+                       {"text": "HER on top", "all": [{"order": ["ddpg_her", "ddpg"], "strict": True}]},
+                       {"text": "HER at 0.6 or more", "all": [{"order": ["ddpg_her", 0.6]}]}]}
     text = pages.render_block("t", spec, tmp_path / "p.md")
     assert f"- holds: HER spreads most (`ddpg_her` (std) {wide.std():.3f} > `ddpg` (std) {narrow.std():.3f})" in text
     assert wide.mean() > narrow.mean() and f"- holds: HER on top (`ddpg_her` {wide.mean():.3f} > `ddpg` {narrow.mean():.3f})" in text
+    assert wide.mean() < 0.6 and f"- does not hold: HER at 0.6 or more (`ddpg_her` {wide.mean():.3f} ≥ 0.600)" in text
 
 
 def test_the_planning_rows_read_the_benchmarks_table_and_check_each_trend(tmp_path):

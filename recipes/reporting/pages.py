@@ -60,6 +60,9 @@ def _runs_block(name: str, block: dict, page: Path, draw: Path | None) -> list[s
         lines += ["Mean (std) over seeds (ddof=0). " + "; ".join(about) + ".", ""]
     if block.get("about"):
         lines += [block["about"].strip(), ""]
+    for ref in block.get("references", []):  # a figure of the task itself, beside the runs
+        value = json.loads(Path(ref["file"]).read_text())[ref["key"]]
+        lines += [f"{ref['text']}: {value:.3f} (`{ref['file']}`, made by `{ref['command']}`).", ""]
     if block.get("planning"):
         lines += tables.planning_table(block["planning"], page)
     sections = [("Differences in mean test success:", tables.differences(ctx)),
@@ -67,7 +70,7 @@ def _runs_block(name: str, block: dict, page: Path, draw: Path | None) -> list[s
                 (f"Rows whose test success is more than {block['gaps']['threshold']} from the paper's figure (the "
                  "*vs paper* column), and the cause:" if block.get("gaps") else "",
                  tables.paper_gaps(ctx)),
-                ("The paper's orderings, on our means:", tables.checks(ctx))]
+                (block.get("checks_heading", "The paper's orderings, on our means:"), tables.checks(ctx))]
     for heading, items in sections:
         if items:
             lines += [heading, "", *items, ""]

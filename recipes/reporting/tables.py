@@ -413,8 +413,8 @@ def checks(ctx: Context) -> list[str]:
     """The block's ``checks``: each holds when every one of its orderings holds on the rows' means.
 
     An ordering ``{order: [a, b, c], key: success_rate, strict: false}`` reads ``a ≥ b ≥ c`` of the rows'
-    means (``stat: std``: of their spreads over seeds, ddof=0); a list in ``checks`` (a YAML alias of a list
-    of checks) counts as its items.
+    means (``stat: std``: of their spreads over seeds, ddof=0); a number in ``order`` is a threshold the rows
+    are held to; a list in ``checks`` (a YAML alias of a list of checks) counts as its items.
     """
     out = []
     listed = ctx.spec.get("checks", [])
@@ -423,7 +423,9 @@ def checks(ctx: Context) -> list[str]:
         for ordering in check["all"]:
             key, strict = ordering.get("key", "success_rate"), ordering.get("strict", False)
             stat = ordering.get("stat", "mean")
-            values = [getattr(ctx.by_id[m], stat)(key) if m in ctx.by_id else None for m in ordering["order"]]
+            # a number in the order is a threshold: the rows are held to it
+            values = [float(m) if isinstance(m, (int, float)) else
+                      getattr(ctx.by_id[m], stat)(key) if m in ctx.by_id else None for m in ordering["order"]]
             missing += [m for m, v in zip(ordering["order"], values) if v is None and m not in missing]
             if any(v is None for v in values):
                 continue
@@ -432,7 +434,8 @@ def checks(ctx: Context) -> list[str]:
                 count if max(values) >= 100 else seconds3(values))
             sign = " > " if strict else " ≥ "
             of = " (std)" if stat == "std" else ""
-            parts.append(sign.join(f"`{m}`{of} {fmt(v)}" for m, v in zip(ordering["order"], values)))
+            parts.append(sign.join(fmt(v) if isinstance(m, (int, float)) else f"`{m}`{of} {fmt(v)}"
+                                   for m, v in zip(ordering["order"], values)))
         if missing:
             out.append(f"- not run: {check['text']} (missing: {', '.join(f'`{m}`' for m in missing)})")
         else:
