@@ -178,12 +178,14 @@ def test_sweep_report_and_restart(tmp_path, capsys):
 
 # what defines a run's task and budget, for each recipe's config (a key a config lacks is skipped)
 RUN_DEFINING_KEYS = ("env.name", "collector.total_frames", "collector.total_episodes",
-                     "env.collision_type", "planner.d", "silp.filter", "exploration.mode", "n_demos",
+                     "env.collision_type", "planner.d", "silp.filter", "exploration.mode",
+                     "exploration.mask_colliding_candidates", "n_demos",
                      "optim.n_updates", "optim.utd_ratio", "budget_s", "source", "eval.n_tasks", "eval.test_seed")
 
 
 @pytest.mark.parametrize("config_name", ["sweep", "sweep_ablations", "sweep_tasks", "sweep_default",
-                                         "sweep_utd"])
+                                         "sweep_utd", "sweep_sac_type2_causes", "sweep_planar_arm",
+                                         "sweep_baselines_rerun"])
 def test_each_grid_started_again_composes_its_committed_runs(config_name):
     """A grid whose runs are committed composes, for each method's seed 0, the task and budget of that run's
     config.yaml: the sweep's grid-wide overrides do not overrule a method's own (the Panda runs' 300k
