@@ -8,7 +8,8 @@ A configuration collides when a link meets a disc, or the last link meets the fi
 The discs lie in the ring the outer links sweep (0.5 to 0.8 m from the base), and the base joint
 turns through two full turns (starts and goals are drawn within one), so the arm can always swing
 round either way: nearly every task can be solved within the 50 steps of an episode (the share a
-search of the whole joint space solves is ``solvable_share``).
+search of the whole joint space solves: :func:`solvable`), and few without a detour
+(:func:`straight_path_free`).
 
 Train SILP+ on it with the main job, no file of the repository changed (run from the repo root,
 where ``examples`` is importable)::
@@ -34,7 +35,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from torchrl_silp.models import TaskModel
 
-__all__ = ["PlanarArmReach", "solvable_share"]
+__all__ = ["PlanarArmReach", "solvable", "straight_path_free", "task_shares"]
 
 LINKS = (0.4, 0.3, 0.2)
 HALF_WIDTH = 0.025
@@ -214,21 +215,30 @@ def solvable(model: PlanarArmReach, tasks: TensorDictBase, max_steps: int = 50) 
     return out
 
 
-def solvable_share(n_tasks: int = 1000, seed: int = 20231101, max_steps: int = 50, n_discs: int = 3) -> float:
-    """The share of the main job's test tasks (``eval.test_seed``'s, as ``ReachEnv`` draws them) that
-    :func:`solvable` solves."""
+def straight_path_free(model: PlanarArmReach, tasks: TensorDictBase, max_steps: int = 50) -> torch.Tensor:
+    """Which tasks ``[n]`` the straight joint-space path to the goal configuration solves within ``max_steps``
+    steps, its motion checked as a step's is (bool ``[n]``): the tasks that need no detour."""
+    start, goal = tasks.get(model.config_key), tasks.get(model.goal_config_key)
+    steps = torch.ceil((goal - start).abs().amax(-1) / model.action_scale - 1e-6)
+    flags, _ = model.motion_collision_flags(start, goal, tasks.select(*model.scene_keys))
+    return (flags.squeeze(-1) == 0) & (steps <= max_steps)
+
+
+def task_shares(n_tasks: int = 1000, seed: int = 20231101, max_steps: int = 50, n_discs: int = 3) -> dict:
+    """Of the main job's test tasks (``eval.test_seed``'s, as ``ReachEnv`` draws them): the share
+    :func:`solvable` solves and the share :func:`straight_path_free` solves."""
     from torchrl_silp.envs import ReachEnv
 
     model = PlanarArmReach(n_discs=n_discs)
     tasks = ReachEnv(model, num_envs=n_tasks, seed=seed).reset()
-    return solvable(model, tasks, max_steps).float().mean().item()
+    return {"solvable_share": solvable(model, tasks, max_steps).float().mean().item(),
+            "straight_path_share": straight_path_free(model, tasks, max_steps).float().mean().item()}
 
 
-if __name__ == "__main__":  # python examples/planar_arm.py [n_tasks]: the share of the test tasks an ideal policy solves
+if __name__ == "__main__":  # python examples/planar_arm.py [n_tasks]: what share of the test tasks can be solved at all
     import json
     import sys
 
     torch.set_num_threads(1)
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 1000
-    share = solvable_share(n)
-    print(json.dumps({"n_tasks": n, "seed": 20231101, "max_steps": 50, "solvable_share": share}))
+    print(json.dumps({"n_tasks": n, "seed": 20231101, "max_steps": 50, **task_shares(n)}))

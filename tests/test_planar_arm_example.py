@@ -65,3 +65,16 @@ def test_the_search_finds_no_way_to_a_goal_inside_a_disc_or_out_of_reach(model):
     task = _task(model, [0.0, 0.5, 0.5], [0.0, 0.0, 0.0], [[5.0, 5.0, 0.01]] * 3)
     task.set(model.desired_goal_key, torch.tensor([[1.2, 0.0]]))  # beyond the 0.9 m reach
     assert not bool(planar_arm.solvable(model, task, max_steps=80)[0])
+
+
+def test_a_straight_path_solves_a_task_when_its_motion_is_free_and_short_enough(model):
+    far, near = [[5.0, 5.0, 0.01]] * 3, [[0.0, 0.6, 0.1], [5.0, 5.0, 0.01], [5.0, 5.0, 0.01]]
+    clear = _task(model, [0.0, 0.5, 0.5], [0.0, 0.5, -0.5], far)
+    clear.set(model.goal_config_key, torch.tensor([[0.0, 0.5, -0.5]]))
+    assert bool(planar_arm.straight_path_free(model, clear, max_steps=10)[0])  # 1.0 rad of the wrist: 10 steps
+    assert not bool(planar_arm.straight_path_free(model, clear, max_steps=9)[0])
+    # the base turning a quarter turn sweeps the arm through a disc on the y axis
+    swept = _task(model, [0.0, 0.0, 0.0], [math.pi / 2 + 0.4, 0.0, 0.0], near)
+    swept.set(model.goal_config_key, torch.tensor([[math.pi / 2 + 0.4, 0.0, 0.0]]))
+    flags, _ = model.collision_flags(torch.tensor([[math.pi / 2, 0.0, 0.0]]), torch.tensor([near]))
+    assert int(flags) != 0 and not bool(planar_arm.straight_path_free(model, swept, max_steps=50)[0])
