@@ -66,7 +66,7 @@ def _runs_block(name: str, block: dict, page: Path, draw: Path | None) -> list[s
     if block.get("planning"):
         lines += tables.planning_table(block["planning"], page)
     sections = [("Differences in mean test success:", tables.differences(ctx)),
-                ("Rows with fewer seeds than the paper's:", tables.seed_notes(ctx)),
+                (f"Rows with fewer than {block.get('seed_notes')} seeds:", tables.seed_notes(ctx)),
                 (f"Rows whose test success is more than {block['gaps']['threshold']} from the paper's figure (the "
                  "*vs paper* column), and the cause:" if block.get("gaps") else "",
                  tables.paper_gaps(ctx)),
