@@ -140,7 +140,7 @@ def slug(label: str) -> str:
     return re.sub(r"[^a-z0-9]+", "_", label.lower()).strip("_")
 
 
-def _number(text: str) -> float | str | None:
+def number(text: str) -> float | str | None:
     text = text.strip()
     if text in ("None", "null"):
         return None
@@ -163,14 +163,14 @@ def _parse_timings(lines: list[str]) -> dict:
             continue
         key = slug(match.group(1))
         if match.group(4):
-            out[f"{key}_eager_{match.group(3)}"] = _number(match.group(2))
-            out[f"{key}_compiled_{match.group(5)}"] = _number(match.group(4))
+            out[f"{key}_eager_{match.group(3)}"] = number(match.group(2))
+            out[f"{key}_compiled_{match.group(5)}"] = number(match.group(4))
         else:
-            out[f"{key}_{match.group(3)}"] = _number(match.group(2))
+            out[f"{key}_{match.group(3)}"] = number(match.group(2))
         if match.group(6):
-            out[f"{key}_compile_s"] = _number(match.group(6))
+            out[f"{key}_compile_s"] = number(match.group(6))
         if match.group(7):
-            out[f"{key}_ratio"] = _number(match.group(7))
+            out[f"{key}_ratio"] = number(match.group(7))
     return out
 
 
@@ -180,7 +180,7 @@ def _parse_summary(lines: list[str]) -> dict:
     for line in lines:
         match = re.match(r"^\s*([a-z_0-9]+): (.*)$", line)
         if match:
-            out[match.group(1)] = _number(match.group(2))
+            out[match.group(1)] = number(match.group(2))
     return out
 
 
@@ -192,14 +192,14 @@ def _parse_rollouts(lines: list[str]) -> dict:
         if not match:
             continue
         key = slug(match.group(1))
-        out[f"{key}_ms"] = _number(match.group(2))
+        out[f"{key}_ms"] = number(match.group(2))
         step = re.search(r"([\d.,]+) us per step", line)
         if step:
-            out[f"{key}_us_per_step"] = _number(step.group(1))
+            out[f"{key}_us_per_step"] = number(step.group(1))
         success = re.search(r"success (\d+)/(\d+)", line) or re.search(r"success ([\d.]+)$", line)
         if success:
             out[f"{key}_success"] = (int(success.group(1)) / int(success.group(2)) if success.lastindex == 2
-                                     else _number(success.group(1)))
+                                     else number(success.group(1)))
     return out
 
 
@@ -209,11 +209,11 @@ def _parse_throughput(lines: list[str]) -> dict:
     for line in lines:
         mujoco = re.match(r"^MuJoCo .*: ([\d,]+) configs/s", line)
         if mujoco:
-            out["mujoco_configs_s"] = _number(mujoco.group(1))
+            out["mujoco_configs_s"] = number(mujoco.group(1))
         row = re.match(r"^(eager|compiled)\s+(\d+)\s+[\d,]+\s+[\d,]+\s+[\d,]+\s+([\d,]+)\s+([\d.]+)x", line)
         if row:
-            out[f"{row.group(1)}_{row.group(2)}_configs_s"] = _number(row.group(3))
-            out[f"{row.group(1)}_{row.group(2)}_vs_mujoco"] = _number(row.group(4))
+            out[f"{row.group(1)}_{row.group(2)}_configs_s"] = number(row.group(3))
+            out[f"{row.group(1)}_{row.group(2)}_vs_mujoco"] = number(row.group(4))
     return out
 
 
@@ -231,7 +231,7 @@ def _parse_tables(lines: list[str]) -> dict:
             continue
         elif first:
             for column, cell in zip(header, cells):
-                out.setdefault(column, _number(cell))
+                out.setdefault(column, number(cell))
             first = False
     return out
 

@@ -64,7 +64,7 @@ def _runs_block(name: str, block: dict, page: Path, draw: Path | None) -> list[s
         value = json.loads(Path(ref["file"]).read_text())[ref["key"]]
         lines += [f"{ref['text']}: {value:.3f} (`{ref['file']}`, made by `{ref['command']}`).", ""]
     if block.get("planning"):
-        lines += tables.planning_table(block["planning"], page)
+        lines += tables.planning_table(block["planning"])
     sections = [("Differences in mean test success:", tables.differences(ctx)),
                 (f"Rows with fewer than {block.get('seed_notes')} seeds:", tables.seed_notes(ctx)),
                 (f"Rows whose test success is more than {block['gaps']['threshold']} from the paper's figure (the "

@@ -455,7 +455,7 @@ def differences(ctx: Context) -> list[str]:
     return out
 
 
-def planning_table(spec: dict, page: Path) -> list[str]:
+def planning_table(spec: dict) -> list[str]:
     """A block's ``planning``: the planner's figures against a parameter, one column per value, from the
     markdown table of a benchmark output whose title starts with ``table``; the paper's figures beside (its
     table ``paper`` of paper.yaml, ``{method: {figure: value}}``, the methods in ``columns`` order) and the
@@ -474,7 +474,7 @@ def planning_table(spec: dict, page: Path) -> list[str]:
     data: dict[str, dict[str, dict[str, float]]] = {}
     texts: dict[str, dict[str, dict[str, str]]] = {}
     for row in cells:
-        data.setdefault(row[kind_at], {})[row[value_at]] = {h: load._number(c) for h, c in zip(header, row)}
+        data.setdefault(row[kind_at], {})[row[value_at]] = {h: load.number(c) for h, c in zip(header, row)}
         texts.setdefault(row[kind_at], {})[row[value_at]] = dict(zip(header, row))
     figures = paper().get(spec["paper"], {})
     out = []
