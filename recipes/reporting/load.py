@@ -248,8 +248,8 @@ def markdown_tables(path: Path) -> dict[str, tuple[list[str], list[list[str]]]]:
                 tables[title] = (cells, [])
             elif not set(line) <= set("|:- "):
                 tables[title][1].append(cells)
-        else:
-            title = title if title is not None and title not in tables else None
+        elif title in tables:  # the table under this title has ended
+            title = None
     return tables
 
 

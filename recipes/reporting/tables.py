@@ -471,18 +471,16 @@ def planning_table(spec: dict) -> list[str]:
     title, (header, cells) = next(iter(found.items()))
     kind_at, value_at = header.index(spec["kind_column"]), header.index(spec["parameter_column"])
     values = list(spec["columns"])
-    data: dict[str, dict[str, dict[str, float]]] = {}
-    texts: dict[str, dict[str, dict[str, str]]] = {}
+    texts: dict[str, dict[str, dict[str, str]]] = {}  # rollouts kind -> parameter value -> column -> cell
     for row in cells:
-        data.setdefault(row[kind_at], {})[row[value_at]] = {h: load.number(c) for h, c in zip(header, row)}
         texts.setdefault(row[kind_at], {})[row[value_at]] = dict(zip(header, row))
     figures = paper().get(spec["paper"], {})
     out = []
     for measure, (label, paper_key, fmt, *scale) in spec["measures"].items():
         factor = scale[0] if scale else 1.0
-        for kind, by_value in data.items():
-            out.append([label, kind] + [format(by_value[v][measure] * factor, fmt) if v in by_value else "—"
-                                        for v in values])
+        for kind, by_value in texts.items():
+            out.append([label, kind] + [format(load.number(by_value[v][measure]) * factor, fmt) if v in by_value
+                                        else "—" for v in values])
         if paper_key:
             out.append([label, "the paper"] + [
                 format(figures[m][paper_key][0] if isinstance(figures[m][paper_key], list) else figures[m][paper_key],
@@ -491,12 +489,11 @@ def planning_table(spec: dict) -> list[str]:
              table(["Measure", "Roadmaps", *values], out, ["l", "l", *["r"] * len(values)]), ""]
     checks = []
     for trend in spec.get("trends", []):
-        for kind, by_value in data.items():
-            series = [by_value[v][trend["measure"]] for v in values if v in by_value]
-            pairs = list(zip(series, series[1:]))
+        for kind, by_value in texts.items():
+            shown = [by_value[v][trend["measure"]] for v in values if v in by_value]
+            pairs = list(zip(map(load.number, shown), map(load.number, shown[1:])))
             holds = all(b >= a for a, b in pairs) if trend["order"] == "increasing" else all(b <= a for a, b in pairs)
             sign = " ≤ " if trend["order"] == "increasing" else " ≥ "
-            shown = [texts[kind][v][trend["measure"]] for v in values if v in by_value]
             checks.append(f"- {'holds' if holds else 'does not hold'}: {trend['text']}, {kind} roadmaps "
                           f"({trend['measure']}: {sign.join(shown)})")
     if checks:
