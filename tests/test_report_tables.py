@@ -298,7 +298,9 @@ def test_table5_means_each_policys_reaching_trials_over_seeds_and_checks_the_pap
             "rows": [{"method": "table5_a", "paper": "sac_silp_plus", "label": "A"},
                      {"method": "table5_b", "paper": "sac_demon", "label": "B"}],
             "checks": [{"text": "A ≥ B", "noise": "paper", "order": ["table5_a", "table5_b"]},
-                       {"text": "A ≥ B unnoised", "noise": "none", "order": ["table5_a", "table5_b"]}]}
+                       {"text": "A ≥ B unnoised", "noise": "none", "order": ["table5_a", "table5_b"]},
+                       {"text": "A near B", "noise": "paper", "order": ["table5_a", "table5_b"], "max_difference": 0.05},
+                       {"text": "A far from B", "noise": "paper", "order": ["table5_a", "table5_b"], "max_difference": 1.0}]}
     text = pages.render_block("table5", spec, tmp_path / "p.md")
     success = {m: np.array([shares[m, s].mean() for s in range(3)]) for m in ("table5_a", "table5_b")}
     paper = tables.paper()["table5"]
@@ -310,3 +312,7 @@ def test_table5_means_each_policys_reaching_trials_over_seeds_and_checks_the_pap
     holds = success["table5_a"].mean() >= success["table5_b"].mean()
     assert f"- {'holds' if holds else 'does not hold'}: A ≥ B (`table5_a` {success['table5_a'].mean():.3f}" in text
     assert "- not run: A ≥ B unnoised" in text
+    gap = success["table5_a"].mean() - success["table5_b"].mean()
+    near = "holds" if gap <= 0.05 else "does not hold"
+    assert f"- {near}: A near B (`table5_a` {success['table5_a'].mean():.3f} − `table5_b` {success['table5_b'].mean():.3f}" in text
+    assert f"- holds: A far from B (`table5_a` {success['table5_a'].mean():.3f} − `table5_b` {success['table5_b'].mean():.3f} = {gap:.3f} ≤ 1.000)" in text

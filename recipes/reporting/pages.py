@@ -3,7 +3,7 @@
 A page is a markdown file of prose and generated blocks; a block sits between
 ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->`` and is rewritten whole, the prose around it kept.
 ``pages.yaml`` says which blocks each page holds and what each block is: its kind (``runs``,
-``headline``, ``benchmarks``, ``transfer``, ``pick_place``, ``collision_net``), its results folder and
+``headline``, ``benchmarks``, ``transfer``, ``reaching``, ``pick_place``, ``collision_net``), its results folder and
 its rows and columns. A new study is a new block there: no code.
 
     python recipes/report.py                  # every page's blocks and figures
@@ -160,7 +160,10 @@ def _transfer_block(name: str, block: dict, page: Path, draw: Path | None) -> li
 
 def _reaching_block(name: str, block: dict, page: Path, draw: Path | None) -> list[str]:
     """Table 5: each policy's share of the reaching test's trials per noise level, mean (std) over seeds, and
-    each scenario's share; the paper's figures beside; the paper's orderings on the ``checks`` noise level."""
+    each scenario's share; the paper's figures beside; the paper's claims on the ``checks`` noise level.
+
+    A check is an ordering (``order``: each mean at least the next) or, with ``max_difference``, a bound on
+    how far the first mean may lie above the second."""
     folder = Path(block["results"])
     found = {row["method"]: [json.loads(p.read_text()) for p in sorted((folder / row["method"]).glob("seed*/summary.json"))]
              for row in block["rows"]}
@@ -200,9 +203,14 @@ def _reaching_block(name: str, block: dict, page: Path, draw: Path | None) -> li
         if any(v is None for v in values):
             checks.append(f"- not run: {check['text']}")
             continue
-        holds = all(a >= b for a, b in zip(values, values[1:]))
-        checks.append(f"- {'holds' if holds else 'does not hold'}: {check['text']} ("
-                      + " ≥ ".join(f"`{m}` {v:.3f}" for m, v in zip(order, values)) + ")")
+        if "max_difference" in check:
+            (a, b), bound = values, check["max_difference"]
+            holds = a - b <= bound
+            figures_text = f"`{order[0]}` {a:.3f} − `{order[1]}` {b:.3f} = {a - b:.3f} {'≤' if holds else '>'} {bound:.3f}"
+        else:
+            holds = all(a >= b for a, b in zip(values, values[1:]))
+            figures_text = " ≥ ".join(f"`{m}` {v:.3f}" for m, v in zip(order, values))
+        checks.append(f"- {'holds' if holds else 'does not hold'}: {check['text']} ({figures_text})")
     if checks:
         lines += ["The paper's orderings, on our means:", "", *checks, ""]
     lines += [f"Files: `{folder}/<method>/seed<k>/summary.json` (sweep config `{block['sweep_config']}`: the training runs "
