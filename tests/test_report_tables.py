@@ -98,6 +98,21 @@ def test_rows_not_run_fewer_seeds_and_orderings_that_cannot_be_read(tmp_path):
     assert "- does not hold: c (`sac` 0.600 ≥ `sac_demon` 0.900)" in text
 
 
+def test_a_staged_study_renders_its_rows_as_not_run_until_its_first_run_and_any_other_study_refuses(tmp_path):
+    empty = tmp_path / "staged"
+    empty.mkdir()
+    spec = {"kind": "runs", "title": "t", "results": str(empty), "rows": ["sac", "ddpg"],
+            "columns": ["method", "success", "seeds"], "seed_notes": 3}
+    with pytest.raises(FileNotFoundError, match="no <method>/seed"):  # a mistyped folder is not a staged study
+        pages.render_block("t", spec, tmp_path / "p.md")
+    text = pages.render_block("t", {**spec, "staged": True}, tmp_path / "p.md")
+    rows = _rows(text)
+    assert rows["sac"][1:] == ["not run", "0"] and rows["ddpg"][1:] == ["not run", "0"]
+    _run(empty, "sac", 0, {"success_rate": 0.25})
+    rows = _rows(pages.render_block("t", {**spec, "staged": True}, tmp_path / "p.md"))
+    assert rows["sac"][1:] == ["0.250", "1"] and rows["ddpg"][1:] == ["not run", "0"]
+
+
 def test_settings_name_each_addition_a_run_had_on():
     run = {**PAPER, "algorithm": "sac", "silp": {**PAPER["silp"], "demos": True, "bc": True}}
     assert tables.additions(run) == []

@@ -184,8 +184,7 @@ RUN_DEFINING_KEYS = ("env.name", "collector.total_frames", "collector.total_epis
 
 
 @pytest.mark.parametrize("config_name", ["sweep", "sweep_ablations", "sweep_tasks", "sweep_default",
-                                         "sweep_utd", "sweep_sac_type2_causes", "sweep_planar_arm",
-                                         "sweep_baselines_rerun"])
+                                         "sweep_utd", "sweep_sac_type2_causes", "sweep_planar_arm"])
 def test_each_grid_started_again_composes_its_committed_runs(config_name):
     """A grid whose runs are committed composes, for each method's seed 0, the task and budget of that run's
     config.yaml: the sweep's grid-wide overrides do not overrule a method's own (the Panda runs' 300k
@@ -208,6 +207,25 @@ def test_each_grid_started_again_composes_its_committed_runs(config_name):
             was = OmegaConf.select(committed, key, default=missing)
             if was is not missing:
                 assert OmegaConf.select(composed, key) == was, (run.name, key)
+
+
+def test_the_staged_reruns_compose_the_papers_recovery_at_the_papers_budget():
+    """sweep_baselines_rerun (its runs move to results/paper_budget/, where the test above holds them to
+    sweep.yaml): random recovery draws among collision-free actions, Demon recovers by the GP."""
+    from hydra import compose
+
+    cfg = sweep.load_config([], config_name="sweep_baselines_rerun")
+    runs = [run for run in sweep.plan(cfg, check_configs=False) if run.seed == 0]
+    assert {run.method for run in runs} == set(cfg.methods)
+    for run in runs:
+        with sweep.config_context():
+            composed = compose(run.config, overrides=list(run.overrides))
+        method = run.method
+        assert composed.collector.total_episodes == 10_000, method
+        if method.endswith("demon"):
+            assert composed.exploration.mode == "gp" and not composed.silp.bc, method
+        else:
+            assert composed.exploration.mode == "random" and composed.exploration.mask_colliding_candidates, method
 
 
 def test_table5s_grid_trains_then_runs_the_reaching_test_on_each_checkpoint(tmp_path):

@@ -53,7 +53,15 @@ def _runs_of(folder: str) -> dict:
 
 
 def _runs_block(name: str, block: dict, page: Path, draw: Path | None) -> list[str]:
-    ctx = Context(block, tables.build_rows(block, lambda folder: _runs_of(str(folder))))
+    def runs(folder) -> dict:
+        try:
+            return _runs_of(str(folder))
+        except FileNotFoundError:
+            if block.get("staged"):  # the study's runs are still to come: each row reads "not run"
+                return {}
+            raise
+
+    ctx = Context(block, tables.build_rows(block, runs))
     body, about = tables.runs_table(ctx)
     lines = [body, ""]
     if about:
