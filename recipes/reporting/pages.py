@@ -212,6 +212,8 @@ def _reaching_block(name: str, block: dict, page: Path, draw: Path | None) -> li
             checks.append(f"- not run: {check['text']}")
             continue
         if "max_difference" in check:
+            if len(order) != 2:
+                raise ValueError(f"block {name!r}: a max_difference check compares two rows, got order={order}")
             (a, b), bound = values, check["max_difference"]
             holds = a - b <= bound
             figures_text = f"`{order[0]}` {a:.3f} − `{order[1]}` {b:.3f} = {a - b:.3f} {'≤' if holds else '>'} {bound:.3f}"
@@ -220,7 +222,7 @@ def _reaching_block(name: str, block: dict, page: Path, draw: Path | None) -> li
             figures_text = " ≥ ".join(f"`{m}` {v:.3f}" for m, v in zip(order, values))
         checks.append(f"- {'holds' if holds else 'does not hold'}: {check['text']} ({figures_text})")
     if checks:
-        lines += ["The paper's orderings, on our means:", "", *checks, ""]
+        lines += ["The paper's sentences, on our means:", "", *checks, ""]
     lines += [f"Files: `{folder}/<method>/seed<k>/summary.json` (sweep config `{block['sweep_config']}`: the training runs "
               "and, after each, `recipes/transfer.py scenario=reaching` on its checkpoint); regenerate with "
               f"`python recipes/report.py --block {name}`.", ""]
