@@ -331,3 +331,6 @@ def test_table5_means_each_policys_reaching_trials_over_seeds_and_checks_the_pap
     near = "holds" if gap <= 0.05 else "does not hold"
     assert f"- {near}: A near B (`table5_a` {success['table5_a'].mean():.3f} − `table5_b` {success['table5_b'].mean():.3f}" in text
     assert f"- holds: A far from B (`table5_a` {success['table5_a'].mean():.3f} − `table5_b` {success['table5_b'].mean():.3f} = {gap:.3f} ≤ 1.000)" in text
+    bad = dict(spec, checks=[{"text": "x", "noise": "paper", "order": ["table5_a", "table5_b", "table5_a"], "max_difference": 0.1}])
+    with pytest.raises(ValueError, match="compares two rows"):
+        pages.render_block("table5", bad, tmp_path / "p.md")
