@@ -220,12 +220,11 @@ def test_the_staged_reruns_compose_the_papers_recovery_at_the_papers_budget():
     for run in runs:
         with sweep.config_context():
             composed = compose(run.config, overrides=list(run.overrides))
-        method = run.method
-        assert composed.collector.total_episodes == 10_000, method
-        if method.endswith("demon"):
-            assert composed.exploration.mode == "gp" and not composed.silp.bc, method
+        assert composed.collector.total_episodes == 10_000, run.method
+        if run.method.endswith("demon"):
+            assert composed.exploration.mode == "gp" and not composed.silp.bc, run.method
         else:
-            assert composed.exploration.mode == "random" and composed.exploration.mask_colliding_candidates, method
+            assert composed.exploration.mode == "random" and composed.exploration.mask_colliding_candidates, run.method
 
 
 def test_table5s_grid_trains_then_runs_the_reaching_test_on_each_checkpoint(tmp_path):
