@@ -62,8 +62,6 @@ def test_every_table1_learning_method_is_a_config():
         "sac_silp_plus_ext": ("sac", True, True, "none", "gp", False, 0.25),
     }
     expected.update({"ddpg" + name[3:]: ("ddpg",) + flags[1:] for name, flags in expected.items() if name != "sac_silp"})
-    # staged: DDPG-Demon keeps random recovery until its re-runs with GP recovery are in (sweep_baselines_rerun)
-    expected["ddpg_demon"] = ("ddpg", True, False, "reward", "random", False, "proportional")
     # no filter was chosen on SAC's validation runs; the DDPG extended method keeps the paper's
     expected["ddpg_silp_plus_ext"] = ("ddpg", True, True, "reward", "gp", False, 0.25)
     # the baselines like-for-like with ours: our settings, only what the method changes
