@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from torchrl_silp.recipes.reporting import load, pages, tables
 
@@ -266,6 +268,37 @@ def test_an_ordering_of_spreads_reads_each_rows_std_over_seeds(tmp_path):
     assert f"- holds: HER spreads most (`ddpg_her` (std) {wide.std():.3f} > `ddpg` (std) {narrow.std():.3f})" in text
     assert wide.mean() > narrow.mean() and f"- holds: HER on top (`ddpg_her` {wide.mean():.3f} > `ddpg` {narrow.mean():.3f})" in text
     assert wide.mean() < 0.6 and f"- does not hold: HER at 0.6 or more (`ddpg_her` {wide.mean():.3f} ≥ 0.600)" in text
+
+
+def test_a_runs_block_bounds_a_difference_with_the_same_judge_as_table5(tmp_path):
+    a, b = np.array([0.90, 0.92, 0.88]), np.array([0.70, 0.80, 0.75])
+    for seed in range(3):
+        _run(tmp_path, "sac_silp_plus", seed, {"success_rate": float(a[seed])})
+        _run(tmp_path, "sac_demon", seed, {"success_rate": float(b[seed])})
+    spec = {"kind": "runs", "title": "t", "results": str(tmp_path), "rows": ["sac_silp_plus", "sac_demon"],
+            "columns": ["method", "success"],
+            "checks": [{"text": "close", "all": [{"order": ["sac_silp_plus", "sac_demon"], "max_difference": 0.1}]},
+                       {"text": "on top and close", "all": [{"order": ["sac_silp_plus", "sac_demon"]},
+                                                            {"order": ["sac_silp_plus", "sac_demon"], "max_difference": 0.2}]}]}
+    text = pages.render_block("t", spec, tmp_path / "p.md")
+    gap = a.mean() - b.mean()  # 0.15
+    assert (f"- does not hold: close (`sac_silp_plus` {a.mean():.3f} − `sac_demon` {b.mean():.3f} = {gap:.3f} > 0.100)"
+            in text)
+    assert (f"- holds: on top and close (`sac_silp_plus` {a.mean():.3f} ≥ `sac_demon` {b.mean():.3f}; "
+            f"`sac_silp_plus` {a.mean():.3f} − `sac_demon` {b.mean():.3f} = {gap:.3f} ≤ 0.200)") in text
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(0, 1), min_size=2, max_size=5), st.booleans())
+def test_an_ordering_holds_exactly_when_each_value_is_at_least_the_next(values, strict):
+    names = [f"m{i}" for i in range(len(values))]
+    line = tables.judge({"text": "t", "all": [{"order": names, "strict": strict}]},
+                        lambda m, key, stat: values[names.index(m)])
+    pairs = list(zip(values, values[1:]))
+    expected = all(x > y for x, y in pairs) if strict else all(x >= y for x, y in pairs)
+    assert line.startswith("- holds: t (" if expected else "- does not hold: t (")
+    missing = tables.judge({"text": "t", "all": [{"order": names}]}, lambda m, key, stat: None if m == "m1" else 0.5)
+    assert missing == "- not run: t (missing: `m1`)"
 
 
 def test_the_planning_rows_read_the_benchmarks_table_and_check_each_trend(tmp_path):

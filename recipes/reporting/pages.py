@@ -170,8 +170,8 @@ def _reaching_block(name: str, block: dict, page: Path, draw: Path | None) -> li
     """Table 5: each policy's share of the reaching test's trials per noise level, mean (std) over seeds, and
     each scenario's share; the paper's figures beside; the paper's claims on the ``checks`` noise level.
 
-    A check is an ordering (``order``: each mean at least the next) or, with ``max_difference``, a bound on
-    how far the first mean may lie above the second."""
+    A check (``tables.judge``) is an ordering of the means on its ``noise`` level (``order``: each at least
+    the next) or, with ``max_difference``, a bound on how far the first may lie above the second."""
     folder = Path(block["results"])
     found = {row["method"]: [json.loads(p.read_text()) for p in sorted((folder / row["method"]).glob("seed*/summary.json"))]
              for row in block["rows"]}
@@ -204,23 +204,12 @@ def _reaching_block(name: str, block: dict, page: Path, draw: Path | None) -> li
               "a scenario differing in what perception draws; success and collisions as in Fig. 9's block. The "
               "paper's columns: its Table 5, 100 trials of each policy in 10 scenarios it does not list, in "
               "simulation and on the real UR5e.", ""]
-    checks = []
-    for check in block.get("checks", []):
-        noise, order = check["noise"], check["order"]
-        values = [means.get((m, noise)) for m in order]
-        if any(v is None for v in values):
-            checks.append(f"- not run: {check['text']}")
-            continue
-        if "max_difference" in check:
-            if len(order) != 2:
-                raise ValueError(f"block {name!r}: a max_difference check compares two rows, got order={order}")
-            (a, b), bound = values, check["max_difference"]
-            holds = a - b <= bound
-            figures_text = f"`{order[0]}` {a:.3f} − `{order[1]}` {b:.3f} = {a - b:.3f} {'≤' if holds else '>'} {bound:.3f}"
-        else:
-            holds = all(a >= b for a, b in zip(values, values[1:]))
-            figures_text = " ≥ ".join(f"`{m}` {v:.3f}" for m, v in zip(order, values))
-        checks.append(f"- {'holds' if holds else 'does not hold'}: {check['text']} ({figures_text})")
+    def judged(check: dict) -> str:
+        ordering = {k: check[k] for k in ("order", "max_difference") if k in check}
+        return tables.judge({"text": check["text"], "all": [ordering]},
+                            lambda m, key, stat: means.get((m, check["noise"])))
+
+    checks = [judged(c) for c in block.get("checks", [])]
     if checks:
         lines += ["The paper's sentences, on our means:", "", *checks, ""]
     lines += [f"Files: `{folder}/<method>/seed<k>/summary.json` (sweep config `{block['sweep_config']}`: the training runs "

@@ -410,37 +410,49 @@ def runs_table(ctx: Context) -> tuple[str, list[str]]:
 
 # ------------------------------------------------------------------------- orderings and differences
 def checks(ctx: Context) -> list[str]:
-    """The block's ``checks``: each holds when every one of its orderings holds on the rows' means.
+    """The block's ``checks`` on its rows (``judge``); a list in ``checks`` (a YAML alias of a list of checks)
+    counts as its items."""
+    def value(m: str, key: str, stat: str) -> float | None:
+        return getattr(ctx.by_id[m], stat)(key) if m in ctx.by_id else None
 
-    An ordering ``{order: [a, b, c], key: success_rate, strict: false}`` reads ``a ≥ b ≥ c`` of the rows'
-    means (``stat: std``: of their spreads over seeds, ddof=0); a number in ``order`` is a threshold the rows
-    are held to; a list in ``checks`` (a YAML alias of a list of checks) counts as its items.
-    """
-    out = []
     listed = ctx.spec.get("checks", [])
-    for check in [c for item in listed for c in (item if isinstance(item, list) else [item])]:
-        parts, holds, missing = [], True, []
-        for ordering in check["all"]:
-            key, strict = ordering.get("key", "success_rate"), ordering.get("strict", False)
-            stat = ordering.get("stat", "mean")
-            # a number in the order is a threshold: the rows are held to it
-            values = [float(m) if isinstance(m, (int, float)) else
-                      getattr(ctx.by_id[m], stat)(key) if m in ctx.by_id else None for m in ordering["order"]]
-            missing += [m for m, v in zip(ordering["order"], values) if v is None and m not in missing]
-            if any(v is None for v in values):
-                continue
-            holds &= all((a > b) if strict else (a >= b) for a, b in zip(values, values[1:]))
-            fmt = rate if max(abs(v) for v in values) < 1 and key.endswith("rate") else (
-                count if max(values) >= 100 else seconds3(values))
-            sign = " > " if strict else " ≥ "
-            of = " (std)" if stat == "std" else ""
-            parts.append(sign.join(fmt(v) if isinstance(m, (int, float)) else f"`{m}`{of} {fmt(v)}"
-                                   for m, v in zip(ordering["order"], values)))
-        if missing:
-            out.append(f"- not run: {check['text']} (missing: {', '.join(f'`{m}`' for m in missing)})")
+    return [judge(c, value) for item in listed for c in (item if isinstance(item, list) else [item])]
+
+
+def judge(check: dict, value: Callable[[str, str, str], float | None]) -> str:
+    """One line: whether ``check`` holds, with the figures it was judged on.
+
+    A check holds when every one of its orderings (``check["all"]``) holds. An ordering
+    ``{order: [a, b, c], key: success_rate, strict: false}`` reads ``a ≥ b ≥ c`` of ``value(m, key, stat)``
+    (``stat``: ``mean`` by default, ``std`` for the spread over seeds); a number in ``order`` is a threshold
+    the rows are held to. With ``max_difference: d`` an ordering of two rows reads ``a − b ≤ d`` instead.
+    ``value`` gives ``None`` for a row that was not run.
+    """
+    parts, holds, missing = [], True, []
+    for ordering in check["all"]:
+        key, strict = ordering.get("key", "success_rate"), ordering.get("strict", False)
+        stat, order = ordering.get("stat", "mean"), ordering["order"]
+        values = [float(m) if isinstance(m, (int, float)) else value(m, key, stat) for m in order]
+        missing += [m for m, v in zip(order, values) if v is None and m not in missing]
+        if "max_difference" in ordering and len(order) != 2:
+            raise ValueError(f"{check['text']!r}: a max_difference check compares two rows, got order={order}")
+        if any(v is None for v in values):
+            continue
+        fmt = rate if max(abs(v) for v in values) < 1 and key.endswith("rate") else (
+            count if max(values) >= 100 else seconds3(values))
+        of = " (std)" if stat == "std" else ""
+        named = [fmt(v) if isinstance(m, (int, float)) else f"`{m}`{of} {fmt(v)}" for m, v in zip(order, values)]
+        if "max_difference" in ordering:
+            bound = ordering["max_difference"]
+            ok = values[0] - values[1] <= bound
+            parts.append(f"{named[0]} − {named[1]} = {fmt(values[0] - values[1])} {'≤' if ok else '>'} {fmt(bound)}")
         else:
-            out.append(f"- {'holds' if holds else 'does not hold'}: {check['text']} ({'; '.join(parts)})")
-    return out
+            ok = all((a > b) if strict else (a >= b) for a, b in zip(values, values[1:]))
+            parts.append((" > " if strict else " ≥ ").join(named))
+        holds &= ok
+    if missing:
+        return f"- not run: {check['text']} (missing: {', '.join(f'`{m}`' for m in missing)})"
+    return f"- {'holds' if holds else 'does not hold'}: {check['text']} ({'; '.join(parts)})"
 
 
 def differences(ctx: Context) -> list[str]:
