@@ -184,7 +184,8 @@ RUN_DEFINING_KEYS = ("env.name", "collector.total_frames", "collector.total_epis
 
 
 @pytest.mark.parametrize("config_name", ["sweep", "sweep_ablations", "sweep_tasks", "sweep_default",
-                                         "sweep_utd", "sweep_sac_type2_causes", "sweep_planar_arm"])
+                                         "sweep_utd", "sweep_sac_type2_causes", "sweep_planar_arm",
+                                         "sweep_baselines_rerun"])
 def test_each_grid_started_again_composes_its_committed_runs(config_name):
     """A grid whose runs are committed composes, for each method's seed 0, the task and budget of that run's
     config.yaml: the sweep's grid-wide overrides do not overrule a method's own (the Panda runs' 300k
@@ -209,9 +210,9 @@ def test_each_grid_started_again_composes_its_committed_runs(config_name):
                 assert OmegaConf.select(composed, key) == was, (run.name, key)
 
 
-def test_the_staged_reruns_compose_the_papers_recovery_at_the_papers_budget():
-    """sweep_baselines_rerun (its runs move to results/paper_budget/, where the test above holds them to
-    sweep.yaml): random recovery draws among collision-free actions, Demon recovers by the GP."""
+def test_the_baseline_reruns_compose_the_papers_recovery_at_the_papers_budget():
+    """sweep_baselines_rerun (its runs are under results/paper_budget/, where the test above holds them to
+    their grid): random recovery draws among collision-free actions, Demon recovers by the GP."""
     from hydra import compose
 
     cfg = sweep.load_config([], config_name="sweep_baselines_rerun")
