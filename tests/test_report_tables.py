@@ -254,17 +254,22 @@ def test_gaps_to_the_paper_group_rows_by_cause_and_name_rows_without_one(tmp_pat
     assert abs(gap["sac_her"]) <= 0.1 and "`sac_her` (" not in text  # within the threshold: no cause asked
 
 
+def _checked(root: Path, success: dict[str, np.ndarray], checks: list[dict]) -> str:
+    """A runs block of one row per method, its seeds' test success as given, rendered with ``checks``."""
+    for method, values in success.items():
+        for seed, value in enumerate(values):
+            _run(root, method, seed, {"success_rate": float(value)})
+    spec = {"kind": "runs", "title": "t", "results": str(root), "rows": list(success),
+            "columns": ["method", "success"], "checks": checks}
+    return pages.render_block("t", spec, root / "p.md")
+
+
 def test_an_ordering_of_spreads_reads_each_rows_std_over_seeds(tmp_path):
     wide, narrow = np.array([0.2, 0.6, 0.9]), np.array([0.5, 0.52, 0.55])
-    for seed in range(3):
-        _run(tmp_path, "ddpg_her", seed, {"success_rate": float(wide[seed])})
-        _run(tmp_path, "ddpg", seed, {"success_rate": float(narrow[seed])})
-    spec = {"kind": "runs", "title": "t", "results": str(tmp_path), "rows": ["ddpg_her", "ddpg"],
-            "columns": ["method", "success"],
-            "checks": [{"text": "HER spreads most", "all": [{"order": ["ddpg_her", "ddpg"], "stat": "std", "strict": True}]},
-                       {"text": "HER on top", "all": [{"order": ["ddpg_her", "ddpg"], "strict": True}]},
-                       {"text": "HER at 0.6 or more", "all": [{"order": ["ddpg_her", 0.6]}]}]}
-    text = pages.render_block("t", spec, tmp_path / "p.md")
+    text = _checked(tmp_path, {"ddpg_her": wide, "ddpg": narrow},
+                    [{"text": "HER spreads most", "all": [{"order": ["ddpg_her", "ddpg"], "stat": "std", "strict": True}]},
+                     {"text": "HER on top", "all": [{"order": ["ddpg_her", "ddpg"], "strict": True}]},
+                     {"text": "HER at 0.6 or more", "all": [{"order": ["ddpg_her", 0.6]}]}])
     assert f"- holds: HER spreads most (`ddpg_her` (std) {wide.std():.3f} > `ddpg` (std) {narrow.std():.3f})" in text
     assert wide.mean() > narrow.mean() and f"- holds: HER on top (`ddpg_her` {wide.mean():.3f} > `ddpg` {narrow.mean():.3f})" in text
     assert wide.mean() < 0.6 and f"- does not hold: HER at 0.6 or more (`ddpg_her` {wide.mean():.3f} ≥ 0.600)" in text
@@ -272,15 +277,10 @@ def test_an_ordering_of_spreads_reads_each_rows_std_over_seeds(tmp_path):
 
 def test_a_runs_block_bounds_a_difference_with_the_same_judge_as_table5(tmp_path):
     a, b = np.array([0.90, 0.92, 0.88]), np.array([0.70, 0.80, 0.75])
-    for seed in range(3):
-        _run(tmp_path, "sac_silp_plus", seed, {"success_rate": float(a[seed])})
-        _run(tmp_path, "sac_demon", seed, {"success_rate": float(b[seed])})
-    spec = {"kind": "runs", "title": "t", "results": str(tmp_path), "rows": ["sac_silp_plus", "sac_demon"],
-            "columns": ["method", "success"],
-            "checks": [{"text": "close", "all": [{"order": ["sac_silp_plus", "sac_demon"], "max_difference": 0.1}]},
-                       {"text": "on top and close", "all": [{"order": ["sac_silp_plus", "sac_demon"]},
-                                                            {"order": ["sac_silp_plus", "sac_demon"], "max_difference": 0.2}]}]}
-    text = pages.render_block("t", spec, tmp_path / "p.md")
+    pair = ["sac_silp_plus", "sac_demon"]
+    text = _checked(tmp_path, dict(zip(pair, (a, b))),
+                    [{"text": "close", "all": [{"order": pair, "max_difference": 0.1}]},
+                     {"text": "on top and close", "all": [{"order": pair}, {"order": pair, "max_difference": 0.2}]}])
     gap = a.mean() - b.mean()  # 0.15
     assert (f"- does not hold: close (`sac_silp_plus` {a.mean():.3f} − `sac_demon` {b.mean():.3f} = {gap:.3f} > 0.100)"
             in text)
