@@ -34,7 +34,7 @@ import torch
 
 from torchrl_silp import UR5eReachEnv
 from torchrl_silp.models import UR5eReach
-from torchrl_silp.robot import default_urdf_path
+from torchrl_silp.robots import default_urdf_path
 
 
 def timed(fn, min_time: float, min_reps: int = 3, device: torch.device = torch.device("cpu")) -> float:

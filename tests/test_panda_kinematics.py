@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchrl_silp.panda import Panda, panda_urdf_path
+from torchrl_silp.robots.panda import Panda, panda_urdf_path
 
 # Franka's published modified (Craig) DH table (Franka Control Interface
 # documentation, robot and interface specifications), written out here

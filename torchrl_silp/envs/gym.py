@@ -19,7 +19,7 @@ from torchrl_silp.envs.reach import ReachEnv
 from torchrl_silp.models.base import TaskModel
 from torchrl_silp.models.panda import PandaReach
 from torchrl_silp.models.ur5e import UR5eReach
-from torchrl_silp.robot import UR5e
+from torchrl_silp.robots import UR5e
 from torchrl_silp.transforms import CollisionHandling
 
 __all__ = ["ReachGymEnv", "UR5eReachGymEnv", "PandaReachGymEnv", "ENV_ID", "PANDA_ENV_ID"]
@@ -196,7 +196,7 @@ class UR5eReachGymEnv(ReachGymEnv):
 
     @property
     def robot(self) -> UR5e:
-        """The :class:`~torchrl_silp.robot.UR5e` of the task."""
+        """The :class:`~torchrl_silp.robots.UR5e` of the task."""
         return self.model.robot
 
     def render(self):

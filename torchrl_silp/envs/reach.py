@@ -12,7 +12,7 @@ from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl_silp.models.base import TaskModel
 from torchrl_silp.models.check import ensure_checked
 from torchrl_silp.models.ur5e import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach
-from torchrl_silp.robot import UR5e
+from torchrl_silp.robots import UR5e
 from torchrl_silp.transforms import COLLISION_TYPES, CollisionHandling
 from torchrl_silp.validation import check_positive_int
 
@@ -227,7 +227,7 @@ class UR5eReachEnv(TransformedEnv):
         collision_type: 0, 1, 2 or None.
         success_distance, workspace_exit, table_contact, task_branch, motion_resolution, compile_collision:
             see :class:`~torchrl_silp.models.UR5eReach`.
-        robot: a :class:`~torchrl_silp.robot.UR5e` to share.
+        robot: a :class:`~torchrl_silp.robots.UR5e` to share.
         dtype: floating dtype of the model, observations and actions.
 
     Examples:
@@ -279,7 +279,7 @@ class UR5eReachEnv(TransformedEnv):
 
     @property
     def robot(self) -> UR5e:
-        """The model's :class:`~torchrl_silp.robot.UR5e`."""
+        """The model's :class:`~torchrl_silp.robots.UR5e`."""
         return self.base_env.model.robot
 
     @property

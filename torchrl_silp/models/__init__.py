@@ -12,9 +12,10 @@ from torchrl_silp.models.arm import ArmReach
 from torchrl_silp.models.check import TaskModelError, check_task_model
 from torchrl_silp.models.panda import PandaReach
 from torchrl_silp.models.ur5e import TASK_BRANCHES, WORKSPACE_EXIT_MODES, UR5eReach
+from torchrl_silp.models.urdf_reach import URDFReach
 
 #: task models by the name configs use (``env.name`` of the recipes)
-TASK_MODELS: dict[str, type[TaskModel]] = {"ur5e_reach": UR5eReach, "panda_reach": PandaReach}
+TASK_MODELS: dict[str, type[TaskModel]] = {"ur5e_reach": UR5eReach, "panda_reach": PandaReach, "urdf_reach": URDFReach}
 
 
 def make_model(name: str, **kwargs) -> TaskModel:
@@ -34,6 +35,7 @@ __all__ = [
     "ArmReach",
     "UR5eReach",
     "PandaReach",
+    "URDFReach",
     "TASK_MODELS",
     "make_model",
     "check_task_model",

@@ -2,13 +2,75 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDict
 
-from torchrl_silp.geometry import CollisionReason, aabb_from_center
-from torchrl_silp.models.base import TaskModel
+from collections.abc import Mapping, Sequence
 
-__all__ = ["ArmReach"]
+from tensordict import TensorDictBase
+
+from torchrl_silp.geometry import CollisionReason, aabb_from_center, in_box
+from torchrl_silp.models.base import TaskModel, _check_finite, _check_tensor, check_boxes
+
+__all__ = ["ArmReach", "box_specs"]
+
+_BOX_KEYS = ("size", "size_low", "size_high", "center_low", "center_high", "on_table")
+
+
+def _triple(value, key: str) -> tuple[float, float, float]:
+    try:
+        out = tuple(float(v) for v in value)
+    except TypeError:
+        out = ()
+    if len(out) != 3 or not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{key} must be 3 finite numbers (m), got {value!r}")
+    return out
+
+
+def box_specs(boxes: Sequence[Mapping]) -> list[dict]:
+    """Check and complete a list of box settings; each box a mapping of
+
+    - ``size`` ``(x, y, z)`` (a fixed size), or ``size_low`` and ``size_high`` (each side uniform between them);
+    - ``center_low``, ``center_high``: the region of its centre (uniform);
+    - ``on_table`` (default false): the box stands on the table (its centre's height is half its own).
+
+    Examples:
+        >>> box_specs([{"size": [0.1, 0.1, 0.2], "center_low": [0.3, 0, 0.1], "center_high": [0.5, 0.2, 0.1]}])[0]["size_high"]
+        (0.1, 0.1, 0.2)
+    """
+    if isinstance(boxes, (str, Mapping)) or not isinstance(boxes, Sequence) or not boxes:
+        raise ValueError(f"boxes must be a non-empty list of box settings, got {boxes!r}")
+    out = []
+    for i, box in enumerate(boxes):
+        key = f"boxes[{i}]"
+        if not isinstance(box, Mapping):
+            raise ValueError(f"{key} must be a mapping of {', '.join(_BOX_KEYS)}, got {box!r}")
+        unknown = sorted(set(box) - set(_BOX_KEYS))
+        if unknown:
+            raise ValueError(f"{key}: unknown settings {unknown}; allowed: {', '.join(_BOX_KEYS)}")
+        if "size" in box:
+            if "size_low" in box or "size_high" in box:
+                raise ValueError(f"{key}: give size, or size_low and size_high, not both")
+            low = high = _triple(box["size"], f"{key}.size")
+        elif "size_low" in box and "size_high" in box:
+            low, high = _triple(box["size_low"], f"{key}.size_low"), _triple(box["size_high"], f"{key}.size_high")
+        else:
+            raise ValueError(f"{key}: needs size, or size_low and size_high")
+        if min(low) <= 0 or any(a > b for a, b in zip(low, high)):
+            raise ValueError(f"{key}: sizes must be positive with size_low <= size_high, got {low} and {high}")
+        for k in ("center_low", "center_high"):
+            if k not in box:
+                raise ValueError(f"{key}: needs {k}")
+        c_low, c_high = _triple(box["center_low"], f"{key}.center_low"), _triple(box["center_high"], f"{key}.center_high")
+        if any(a > b for a, b in zip(c_low, c_high)):
+            raise ValueError(f"{key}: center_low must be <= center_high, got {c_low} and {c_high}")
+        on_table = box.get("on_table", False)
+        if not isinstance(on_table, bool):
+            raise ValueError(f"{key}.on_table must be true or false, got {on_table!r}")
+        out.append(dict(size_low=low, size_high=high, center_low=c_low, center_high=c_high, on_table=on_table))
+    return out
 
 # Sampled Lipschitz maxima are scaled by this: the sampled maximum of a smooth
 # function over the joint box sits within a few percent of its supremum.
@@ -17,21 +79,24 @@ _LIPSCHITZ: dict = {}
 
 
 class ArmReach(TaskModel):
-    """A robot arm reaching a goal among ``num_boxes`` boxes on a table (:class:`UR5eReach`, :class:`PandaReach`).
+    """A robot arm reaching a goal among boxes on a table (:class:`UR5eReach`, :class:`PandaReach`, :class:`URDFReach`).
 
     The robot is an :class:`~torchrl_silp.robots.ArmKinematics` (FK, joint limits, sphere cover,
     table and self-collision spheres, URDF path); nothing else of it is read.
     The achieved goal is the robot's TCP (``robot.fk``); the scene is ``"obstacle"``, the boxes'
-    AABBs ``(xmin, xmax, ymin, ymax, zmin, zmax)`` one after the other; a configuration collides
-    with a box, the table, itself or by leaving the workspace (bits of
-    :class:`~torchrl_silp.geometry.CollisionReason`). Tasks: start and goal configurations drawn in
-    the task joint box, free with the motion margin, accepted by :meth:`task_filter`; box centres
-    uniform in their region; kept when ``d2 > d1 > d3`` with the first box (start-goal >
+    AABBs ``(xmin, xmax, ymin, ymax, zmin, zmax)`` one after the other, in the order of the
+    box settings; a configuration collides with a box, the table, itself or by leaving the
+    workspace (bits of :class:`~torchrl_silp.geometry.CollisionReason`). Tasks: start and goal
+    configurations drawn in the task joint box, free with the motion margin, accepted by
+    :meth:`task_filter`; each box's size and centre uniform in its own ranges
+    (:func:`box_specs`); kept when ``d2 > d1 > d3`` with the first box (start-goal >
     start-box > box-goal) and no box touches start or goal (the paper's sec. 4.1 rule).
 
     A subclass sets the class constants (``WORKSPACE_LOW`` / ``HIGH``, ``OBSTACLE_SIZE``,
-    ``OBSTACLE_CENTER_LOW`` / ``HIGH``, ``TASK_JOINT_LOW`` / ``HIGH``), ``robot_class``,
-    ``config_dim`` and ``action_scale``, and implements :meth:`collision_flags` and :meth:`clearance`.
+    ``OBSTACLE_CENTER_LOW`` / ``HIGH``: the default box, repeated ``num_boxes`` times;
+    ``TASK_JOINT_LOW`` / ``HIGH``), ``robot_class``, ``config_dim`` and ``action_scale``;
+    ``boxes=`` sets each box's own size range and region instead. :meth:`collision_flags`
+    and :meth:`clearance` test the sphere cover against every box (a subclass may fuse them).
     """
 
     goal_dim = 3
@@ -45,13 +110,21 @@ class ArmReach(TaskModel):
     TASK_JOINT_LOW: tuple
     TASK_JOINT_HIGH: tuple
 
-    def __init__(self, robot=None, *, num_boxes: int = 1, success_distance: float = 0.05,
-                 motion_resolution: float = 0.01, conservative: bool = True,
+    def __init__(self, robot=None, *, num_boxes: int = 1, boxes: Sequence[Mapping] | None = None,
+                 success_distance: float = 0.05, motion_resolution: float = 0.01, conservative: bool = True,
                  device: torch.device | str | None = None, dtype: torch.dtype = torch.float32):
         super().__init__(success_distance=success_distance, motion_resolution=motion_resolution,
                          conservative=conservative, device=device, dtype=dtype)
         if isinstance(num_boxes, bool) or not isinstance(num_boxes, int) or num_boxes < 1:
             raise ValueError(f"num_boxes must be a positive int, got {num_boxes!r}")
+        if boxes is None:
+            default = dict(size=self.OBSTACLE_SIZE, center_low=self.OBSTACLE_CENTER_LOW,
+                           center_high=self.OBSTACLE_CENTER_HIGH)
+            boxes = [default] * num_boxes
+        elif num_boxes not in (1, len(boxes)):
+            raise ValueError(f"num_boxes={num_boxes} but boxes holds {len(boxes)} boxes: give one of them")
+        self.boxes = box_specs(boxes)
+        num_boxes = len(self.boxes)
         if robot is None:
             robot = self.robot_class(device=self.device, dtype=dtype)
         elif not isinstance(robot, self.robot_class):
@@ -66,9 +139,13 @@ class ArmReach(TaskModel):
         f = dict(device=self.device, dtype=self.dtype)
         self.workspace_low = torch.tensor(self.WORKSPACE_LOW, **f)
         self.workspace_high = torch.tensor(self.WORKSPACE_HIGH, **f)
-        self.obstacle_size = torch.tensor(self.OBSTACLE_SIZE, **f)
-        self.obstacle_center_low = torch.tensor(self.OBSTACLE_CENTER_LOW, **f)
-        self.obstacle_center_high = torch.tensor(self.OBSTACLE_CENTER_HIGH, **f)
+        self.box_size_low = torch.tensor([b["size_low"] for b in self.boxes], **f)  # (K, 3)
+        self.box_size_high = torch.tensor([b["size_high"] for b in self.boxes], **f)
+        self.box_center_low = torch.tensor([b["center_low"] for b in self.boxes], **f)
+        self.box_center_high = torch.tensor([b["center_high"] for b in self.boxes], **f)
+        self.box_on_table = torch.tensor([b["on_table"] for b in self.boxes], device=self.device)
+        self._sized_boxes = any(b["size_low"] != b["size_high"] for b in self.boxes)
+        self._boxes_on_table = any(b["on_table"] for b in self.boxes)
         self.task_joint_low = torch.tensor(self.TASK_JOINT_LOW, **f)
         self.task_joint_high = torch.tensor(self.TASK_JOINT_HIGH, **f)
 
@@ -77,6 +154,13 @@ class ArmReach(TaskModel):
         self.robot.to(device=self.device)
         self._make_tensors()
         return self
+
+    @property
+    def obstacle_size(self) -> torch.Tensor:
+        """The first box's size ``(3,)``, when it is fixed (the paper's task: one box of one size)."""
+        if self.boxes[0]["size_low"] != self.boxes[0]["size_high"]:
+            raise AttributeError("obstacle_size: the first box's size is drawn from a range (box_size_low, box_size_high)")
+        return self.box_size_low[0]
 
     @property
     def config_low(self) -> torch.Tensor:
@@ -115,7 +199,8 @@ class ArmReach(TaskModel):
             return self._lipschitz
         robot = self.robot
         a, b = self.self_pairs()
-        key = (type(self).__name__, robot.urdf_path, a.numel(), int(a.sum()), int(b.sum()))
+        key = (type(self).__name__, robot.urdf_path, tuple(robot.joint_names), robot.tcp_frame, robot.n_spheres,
+               float(robot.sphere_radii.sum()), a.numel(), int(a.sum()), int(b.sum()))
         if key in _LIPSCHITZ:
             self._lipschitz = _LIPSCHITZ[key]
             return self._lipschitz
@@ -142,10 +227,17 @@ class ArmReach(TaskModel):
         return bounds
 
     def _boxes(self, k: int, generator, gdev) -> torch.Tensor:
-        span = self.obstacle_center_high - self.obstacle_center_low
+        span = self.box_center_high - self.box_center_low
         u = torch.rand(k, self.num_boxes, 3, generator=generator, device=gdev, dtype=self.dtype).to(self.device)
-        centre = self.obstacle_center_low + u * span
-        return aabb_from_center(centre, self.obstacle_size.expand_as(centre))  # (k, K, 6)
+        centre = self.box_center_low + u * span
+        size = self.box_size_low.expand_as(centre)
+        if self._sized_boxes:  # drawn only then, so fixed-size tasks keep the random stream they always had
+            v = torch.rand(k, self.num_boxes, 3, generator=generator, device=gdev, dtype=self.dtype).to(self.device)
+            size = self.box_size_low + v * (self.box_size_high - self.box_size_low)
+        if self._boxes_on_table:
+            centre = torch.cat([centre[..., :2], torch.where(self.box_on_table, size[..., 2] / 2, centre[..., 2])
+                                .unsqueeze(-1)], -1)
+        return aabb_from_center(centre, size)  # (k, K, 6)
 
     def sample_tasks(self, n: int, generator: torch.Generator | None = None) -> TensorDict:
         """Draw ``n`` tasks by vectorised rejection sampling (the rule in the class docstring).
@@ -205,3 +297,52 @@ class ArmReach(TaskModel):
                 )
                 have += idx.numel()
         return torch.cat(out) if len(out) > 1 else out[0]
+
+    # ------------------------------------------------------------- geometry
+    def _flat(self, config, scene):
+        d = self.config_dim
+        _check_tensor("config", config, d)
+        obstacle = scene.get("obstacle") if isinstance(scene, TensorDictBase) else scene
+        _check_tensor("obstacle", obstacle, 6 * self.num_boxes)
+        _check_finite("config", config)
+        check_boxes("obstacle", obstacle)
+        batch = torch.broadcast_shapes(config.shape[:-1], obstacle.shape[:-1])
+        q = config.to(self.dtype).expand(*batch, d).reshape(-1, d)
+        boxes = obstacle.to(self.dtype).expand(*batch, 6 * self.num_boxes).reshape(-1, self.num_boxes, 6)
+        centres, tcp = self.robot.spheres_and_tcp(q)
+        return batch, centres, tcp, boxes
+
+    def collision_flags(self, config, scene, margin=None):
+        batch, centres, tcp, boxes = self._flat(config, scene)
+        m = margin or {}
+        r = self.robot.sphere_radii
+        # (N, K, S): squared gap between every sphere and every box
+        lo, hi = boxes[..., 0::2].unsqueeze(-2), boxes[..., 1::2].unsqueeze(-2)  # (N, K, 1, 3)
+        c = centres.unsqueeze(1)  # (N, 1, S, 3)
+        gap2 = torch.maximum(lo - c, c - hi).clamp(min=0).square().sum(-1)
+        hit_obstacle = (gap2 < (r + m.get("obstacle", 0.0)).square()).flatten(1).any(-1)
+        t = self.robot.table_mask
+        hit_table = (centres[:, t, 2] < r[t] + m.get("table", 0.0)).any(-1)
+        hit_self = self.robot.self_collision(centres, m.get("self", 0.0))
+        w = m.get("workspace", 0.0)
+        out_ws = ~in_box(tcp, self.workspace_low + w, self.workspace_high - w)
+        flags = (
+            hit_obstacle.to(torch.uint8) * CollisionReason.OBSTACLE
+            + hit_table.to(torch.uint8) * CollisionReason.TABLE
+            + hit_self.to(torch.uint8) * CollisionReason.SELF
+            + out_ws.to(torch.uint8) * CollisionReason.WORKSPACE
+        )
+        return flags.reshape(*batch, 1), tcp.reshape(*batch, 3)
+
+    def clearance(self, config, scene):
+        batch, centres, tcp, boxes = self._flat(config, scene)
+        r = self.robot.sphere_radii
+        lo, hi = boxes[..., 0::2].unsqueeze(-2), boxes[..., 1::2].unsqueeze(-2)
+        c = centres.unsqueeze(1)
+        gap = torch.maximum(lo - c, c - hi).clamp(min=0).norm(dim=-1)
+        obstacle_c = (gap - r).flatten(1).amin(-1)
+        t = self.robot.table_mask
+        table_c = (centres[:, t, 2] - r[t]).amin(-1) if t.any() else torch.full_like(obstacle_c, math.inf)
+        self_c = self.robot.self_clearance(centres)
+        ws_c = torch.minimum(tcp - self.workspace_low, self.workspace_high - tcp).amin(-1)
+        return torch.stack([obstacle_c, table_c, self_c, ws_c], -1).reshape(*batch, 4)

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDictBase
 
-from torchrl_silp.geometry import CollisionReason, in_box
 from torchrl_silp.models.arm import ArmReach
-from torchrl_silp.models.base import _check_finite, _check_tensor, check_boxes
 from torchrl_silp.robots import Panda
 
 __all__ = ["PandaReach"]
@@ -34,7 +31,8 @@ class PandaReach(ArmReach):
 
     Args:
         robot: a :class:`~torchrl_silp.robots.Panda` to share; built from ``assets/panda.urdf`` by default.
-        num_boxes: boxes on the table (>= 1).
+        num_boxes: boxes on the table (>= 1), each the default box.
+        boxes: each box's size range and region instead (:func:`~torchrl_silp.models.arm.box_specs`).
         success_distance, motion_resolution, conservative, device, dtype: see :class:`TaskModel`.
 
     Examples:
@@ -64,6 +62,7 @@ class PandaReach(ArmReach):
         robot: Panda | None = None,
         *,
         num_boxes: int = 1,
+        boxes=None,
         success_distance: float = 0.05,
         motion_resolution: float = 0.005,
         conservative: bool = True,
@@ -71,54 +70,6 @@ class PandaReach(ArmReach):
         dtype: torch.dtype = torch.float32,
     ):
         super().__init__(
-            robot, num_boxes=num_boxes, success_distance=success_distance, motion_resolution=motion_resolution,
+            robot, num_boxes=num_boxes, boxes=boxes, success_distance=success_distance, motion_resolution=motion_resolution,
             conservative=conservative, device=device, dtype=dtype,
         )
-
-    # ------------------------------------------------------------- geometry
-    def _flat(self, config, scene):
-        _check_tensor("config", config, 7)
-        obstacle = scene.get("obstacle") if isinstance(scene, TensorDictBase) else scene
-        _check_tensor("obstacle", obstacle, 6 * self.num_boxes)
-        _check_finite("config", config)
-        check_boxes("obstacle", obstacle)
-        batch = torch.broadcast_shapes(config.shape[:-1], obstacle.shape[:-1])
-        q = config.to(self.dtype).expand(*batch, 7).reshape(-1, 7)
-        boxes = obstacle.to(self.dtype).expand(*batch, 6 * self.num_boxes).reshape(-1, self.num_boxes, 6)
-        centres, tcp = self.robot.spheres_and_tcp(q)
-        return batch, centres, tcp, boxes
-
-    def collision_flags(self, config, scene, margin=None):
-        batch, centres, tcp, boxes = self._flat(config, scene)
-        m = margin or {}
-        r = self.robot.sphere_radii
-        # (N, K, S): squared gap between every sphere and every box
-        lo, hi = boxes[..., 0::2].unsqueeze(-2), boxes[..., 1::2].unsqueeze(-2)  # (N, K, 1, 3)
-        c = centres.unsqueeze(1)  # (N, 1, S, 3)
-        gap2 = torch.maximum(lo - c, c - hi).clamp(min=0).square().sum(-1)
-        hit_obstacle = (gap2 < (r + m.get("obstacle", 0.0)).square()).flatten(1).any(-1)
-        t = self.robot.table_mask
-        hit_table = (centres[:, t, 2] < r[t] + m.get("table", 0.0)).any(-1)
-        hit_self = self.robot.self_collision(centres, m.get("self", 0.0))
-        w = m.get("workspace", 0.0)
-        out_ws = ~in_box(tcp, self.workspace_low + w, self.workspace_high - w)
-        flags = (
-            hit_obstacle.to(torch.uint8) * CollisionReason.OBSTACLE
-            + hit_table.to(torch.uint8) * CollisionReason.TABLE
-            + hit_self.to(torch.uint8) * CollisionReason.SELF
-            + out_ws.to(torch.uint8) * CollisionReason.WORKSPACE
-        )
-        return flags.reshape(*batch, 1), tcp.reshape(*batch, 3)
-
-    def clearance(self, config, scene):
-        batch, centres, tcp, boxes = self._flat(config, scene)
-        r = self.robot.sphere_radii
-        lo, hi = boxes[..., 0::2].unsqueeze(-2), boxes[..., 1::2].unsqueeze(-2)
-        c = centres.unsqueeze(1)
-        gap = torch.maximum(lo - c, c - hi).clamp(min=0).norm(dim=-1)
-        obstacle_c = (gap - r).flatten(1).amin(-1)
-        t = self.robot.table_mask
-        table_c = (centres[:, t, 2] - r[t]).amin(-1)
-        self_c = self.robot.self_clearance(centres)
-        ws_c = torch.minimum(tcp - self.workspace_low, self.workspace_high - tcp).amin(-1)
-        return torch.stack([obstacle_c, table_c, self_c, ws_c], -1).reshape(*batch, 4)

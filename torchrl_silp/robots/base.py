@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchrl_silp.robots.urdf import CollisionPrimitive, parse_collisions, parse_joints, read_urdf, serial_chain
+from torchrl_silp.robots.urdf import CollisionPrimitive, load_description, serial_chain
 
 __all__ = ["ArmKinematics", "chain_bodies", "apply_map"]
 
@@ -126,6 +126,22 @@ def _index_of(indices: Sequence[int]) -> slice | list[int]:
 
 
 # ---------------------------------------------------------------- the arm
+def _translation(v: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = v
+    return T
+
+
+def _held_transform(j, value: float) -> np.ndarray:
+    """The child frame of joint ``j`` in its parent's, the joint held at ``value``."""
+    if j.type == "fixed":
+        return j.origin
+    if j.type == "prismatic":
+        return j.origin @ _translation(value * j.axis)
+    align = _axis_alignment(j.axis)
+    return j.origin @ align @ _rz(value) @ align.T
+
+
 class ArmKinematics(nn.Module):
     """A robot arm from a URDF: TCP and frame kinematics and a collision-sphere cover, batched.
 
@@ -134,40 +150,55 @@ class ArmKinematics(nn.Module):
     device and is differentiable. Constants are buffers, so ``.to(device)`` and
     ``.to(dtype)`` move them.
 
+    The URDF is read by :func:`~torchrl_silp.robots.urdf.load_description` (yourdfpy). The
+    configuration joints and the joints coupled to them (``coupled``, and ``mimic`` joints
+    of either) must lie on the chain from ``root`` to ``tcp_link``; every other movable
+    joint of the tree below ``root`` (a wrist not in the configuration, the fingers, a
+    prismatic joint) is held at ``held[name]`` (default: 0 clipped into its limits), so
+    each link rides rigidly on one moving body.
+
     What tasks and pictures read:
 
     - kinematics: :meth:`fk` (TCP position), :meth:`tcp_pose`, :meth:`frames`
-      (every frame of :attr:`frame_names`, root first, ``tcp`` last),
-      :meth:`full_joints` (the angles of all chain joints, :attr:`chain_joint_names`);
+      (every frame of :attr:`frame_names`: the chain's links root first, the links off the
+      chain, then :attr:`tcp_frame` when it is not a link), :meth:`full_joints` (the angles of all moving chain joints,
+      :attr:`chain_joint_names`);
     - joints: :attr:`joint_names`, :attr:`joint_low`, :attr:`joint_high` (URDF limits);
-    - the sphere cover of the URDF's ``<collision>`` primitives (:attr:`primitives`):
+    - the sphere cover of the URDF's ``<collision>`` elements (:attr:`primitives`):
       sphere ``i`` rides on frame ``frame_names[sphere_frame[i]]`` at ``sphere_local[i]``
       with radius ``sphere_radii[i]``, covering primitive ``sphere_primitive[i]`` of link
-      ``sphere_link_names[i]``; :meth:`spheres_and_tcp`, :meth:`link_spheres`;
+      ``sphere_link_names[i]``; :meth:`spheres_and_tcp`, :meth:`link_spheres`,
+      :meth:`cover_report`; a mesh's cover is fitted (:mod:`torchrl_silp.robots.covers`);
     - the table test: :attr:`table_mask` (spheres checked against ``z = 0``: all but
-      those of :attr:`TABLE_LINKS`), :attr:`table_index` (the same as a slice or list);
+      those of :attr:`table_links`), :attr:`table_index` (the same as a slice or list);
     - the self test: sphere pairs :attr:`self_pair_a` < :attr:`self_pair_b`; they lie in
       one block of the sphere-distance matrix, rows :attr:`self_rows` by columns
       :attr:`self_cols`, whose :attr:`self_reach` holds the radius sum of a checked pair and
       ``-1`` elsewhere; :meth:`self_collision`, :meth:`self_clearance`;
     - the hot-path form: :meth:`joint_trig` then :meth:`cover_points_from_trig` (or
       :meth:`cover_points`) give every sphere centre and the TCP coordinate-major;
-    - :attr:`urdf_path`, and :meth:`reference_fk` through pytorch-kinematics (for checks).
+    - :attr:`urdf_path`, :attr:`package_dirs`, and :meth:`reference_fk` through
+      pytorch-kinematics (for checks).
 
-    Subclasses name the chain (``root``, the configuration joints and the coupled ones)
-    and set :attr:`TABLE_LINKS`, :attr:`END_EFFECTOR_LINKS`, and the self pairs
-    (:meth:`_set_self_pairs`).
+    Subclasses (:class:`~torchrl_silp.robots.URDFArm`) choose the self pairs
+    (:meth:`_set_self_pairs`) and the table links.
 
     Args:
         urdf_path: the URDF file.
-        root: the chain's root link (the world frame).
-        config_joints: the chain joints the configuration holds, in its order.
-        coupled: every other revolute chain joint as ``name: (coefficients, offset)``, its
-            angle ``coefficients . q + offset``; all-zero coefficients lock it at ``offset``.
+        root: the chain's root link (the world frame); default: the URDF's root link.
+        config_joints: the revolute chain joints the configuration holds, in its order.
+        tcp_link: the link the TCP rides on; default :attr:`TCP_FRAME`.
+        tcp_offset: the TCP in ``tcp_link``'s frame (m).
+        coupled: revolute chain joints as ``name: (coefficients, offset)``, the angle
+            ``coefficients . q + offset``; all-zero coefficients lock it at ``offset``.
+        held: the value (rad or m) of movable joints that are neither configured nor coupled.
+        package_dirs: where ``package://`` meshes are found (:mod:`torchrl_silp.robots.urdf`).
+        max_spheres_per_link, cover_volume_ratio: a mesh's cover (:func:`~torchrl_silp.robots.covers.mesh_sphere_cover`).
         device, dtype: of the constant tensors (float32 default; float64 for tests).
     """
 
-    #: the frame whose position :meth:`fk` returns
+    #: the default TCP link, and the name of the TCP frame added when the TCP is another link or offset
+    #: (:attr:`tcp_frame` is the TCP's frame)
     TCP_FRAME = "tcp"
     #: links standing on the table: their spheres are not checked against the plane z = 0
     TABLE_LINKS: tuple[str, ...] = ()
@@ -182,9 +213,15 @@ class ArmKinematics(nn.Module):
         self,
         urdf_path: str | os.PathLike,
         *,
-        root: str,
+        root: str | None = None,
         config_joints: Sequence[str],
+        tcp_link: str | None = None,
+        tcp_offset: Sequence[float] = (0.0, 0.0, 0.0),
         coupled: Mapping[str, tuple[Sequence[float], float]] | None = None,
+        held: Mapping[str, float] | None = None,
+        package_dirs=None,
+        max_spheres_per_link: int = 8,
+        cover_volume_ratio: float = 2.5,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
     ):
@@ -192,66 +229,140 @@ class ArmKinematics(nn.Module):
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         path = os.fspath(urdf_path)
-        text = read_urdf(path)
-        try:
-            chain = serial_chain(parse_joints(text), root, self.TCP_FRAME)
-            prims = parse_collisions(text)
-        except ValueError as err:
-            raise ValueError(f"urdf_path: {path!r}: {err}") from err
-        self.urdf_path = path
+        desc = load_description(path, package_dirs)
+        self.urdf_path, self.package_dirs, self.description = path, package_dirs, desc
         self._reference_chain = None  # pytorch-kinematics' chain, built on first use by reference_fk
-        rotating = [j for j in chain if j.type != "fixed"]
-        self.chain_joint_names = tuple(j.name for j in rotating)
-        config_joints, coupled = tuple(config_joints), dict(coupled or {})
-        expected = set(config_joints) | set(coupled)
-        if expected != set(self.chain_joint_names) or len(expected) != len(config_joints) + len(coupled):
-            raise ValueError(
-                f"urdf_path: {path!r}: the revolute joints from {root!r} to {self.TCP_FRAME!r} are "
-                f"{list(self.chain_joint_names)}; expected {list(config_joints)} and the coupled {list(coupled)}"
-            )
-        self.joint_names = config_joints
+        root = desc.root if root is None else root
+        tcp_link = self.TCP_FRAME if tcp_link is None else tcp_link
+        for key, link in (("root", root), ("ee_link", tcp_link)):
+            if link not in desc.links:
+                raise ValueError(f"{key}: no link {link!r} in urdf_path {path!r}; its links: {desc.links}")
+        tcp_offset = np.asarray(tcp_offset, dtype=np.float64)
+        if tcp_offset.shape != (3,) or not np.isfinite(tcp_offset).all():
+            raise ValueError(f"ee_offset must be 3 finite numbers (m), got {tcp_offset.tolist()}")
+        virtual_tcp = tcp_link != self.TCP_FRAME or bool(tcp_offset.any())
+        # the TCP's frame: the link itself, or a frame added after the links ("tcp", unless a link has that name)
+        self.tcp_frame = tcp_link if not virtual_tcp else (
+            self.TCP_FRAME if self.TCP_FRAME not in desc.links else f"{tcp_link}_tcp")
+        try:
+            chain = serial_chain(desc.joints, root, tcp_link)
+        except ValueError as err:
+            raise ValueError(f"ee_link: {path!r}: {err}") from err
+        self.tcp_link, self.tcp_offset = tcp_link, tuple(tcp_offset.tolist())
+
+        by_name = {j.name: j for j in desc.joints}
+        config_joints, coupled, held = tuple(config_joints), dict(coupled or {}), dict(held or {})
+        moving = [j for j in chain if j.moves]
+        chain_names = [j.name for j in moving]
+        for name in (*config_joints, *coupled):
+            if name not in by_name:
+                raise ValueError(f"joints: {path!r} has no joint {name!r}; its movable joints: "
+                                 f"{[j.name for j in desc.joints if j.moves]}")
+            if name not in chain_names:
+                raise ValueError(f"joints: joint {name!r} is not on the chain from {root!r} to {tcp_link!r}, "
+                                 f"whose movable joints are {chain_names}")
+            if by_name[name].type == "prismatic":
+                raise ValueError(f"joints: joint {name!r} is prismatic; the configuration holds revolute joints")
+        if len(set(config_joints)) != len(config_joints) or set(config_joints) & set(coupled):
+            raise ValueError(f"joints: each joint may be named once, got {list(config_joints)} and coupled {list(coupled)}")
+        unknown = sorted(set(held) - {j.name for j in desc.joints if j.moves})
+        if unknown:
+            raise ValueError(f"held: {path!r} has no movable joints {unknown}")
         d = len(config_joints)
-        jmap, joff = np.zeros((len(rotating), d)), np.zeros(len(rotating))
-        for i, j in enumerate(rotating):
+        if d == 0:
+            raise ValueError("joints: the configuration needs at least one joint")
+
+        def row(j, seen=()):
+            """The joint's angle as (coefficients over q, offset); zero coefficients: held."""
             if j.name in config_joints:
-                jmap[i, config_joints.index(j.name)] = 1.0
-            else:
+                return np.eye(d)[config_joints.index(j.name)], 0.0
+            if j.name in coupled:
                 coeffs, offset = coupled[j.name]
                 if len(coeffs) != d:
                     raise ValueError(f"coupled: joint {j.name!r} needs {d} coefficients, got {len(coeffs)}")
-                jmap[i], joff[i] = coeffs, offset
-        limits = {j.name: j.limits for j in rotating}
+                return np.asarray(coeffs, dtype=np.float64), float(offset)
+            if j.name in held:
+                return np.zeros(d), float(held[j.name])
+            if j.mimic is not None and j.mimic[0] in by_name and j.name not in seen:
+                coeffs, offset = row(by_name[j.mimic[0]], (*seen, j.name))
+                return j.mimic[1] * coeffs, j.mimic[1] * offset + j.mimic[2]
+            lo, hi = j.limits if j.limits is not None else (0.0, 0.0)
+            return np.zeros(d), float(np.clip(0.0, lo, hi))
+
+        jmap, joff = np.zeros((len(moving), d)), np.zeros(len(moving))
+        for i, j in enumerate(moving):
+            jmap[i], joff[i] = row(j)
+            if jmap[i].any() and j.type == "prismatic":
+                raise ValueError(f"joints: prismatic joint {j.name!r} cannot follow the configuration")
+        self.chain_joint_names = tuple(chain_names)
+        self.joint_names = config_joints
+        limits = {j.name: j.limits for j in moving}
         missing = [n for n in config_joints if limits[n] is None]
         if missing:
-            raise ValueError(f"urdf_path: {path!r}: joints {missing} have no <limit lower upper>")
+            raise ValueError(f"joints: {path!r}: joints {missing} have no <limit lower upper> (continuous joints)")
 
         # Walk the chain once. A body is the root or the child of a moving joint; every
         # frame is a constant offset from its body, and a moving joint's effective origin
-        # absorbs the fixed frames (and locked joints) since the previous body.
+        # absorbs the fixed frames (and held joints) since the previous body.
         frame_names, frame_body, frame_offset, frame_depth = [root], [0], [np.eye(4)], [0]
         origins, moving_rows = [], []
         pending, depth = np.eye(4), 0
         for j in chain:
-            if j.type == "fixed":
-                pending = pending @ j.origin
-            else:
-                i = self.chain_joint_names.index(j.name)
-                align = _axis_alignment(j.axis)
+            if j.moves:
+                i = chain_names.index(j.name)
                 depth += 1
                 if jmap[i].any():
+                    align = _axis_alignment(j.axis)
                     origins.append(pending @ j.origin @ align)
                     moving_rows.append(i)
                     pending = align.T.copy()
                 else:
-                    pending = pending @ j.origin @ align @ _rz(joff[i]) @ align.T
+                    pending = pending @ _held_transform(j, joff[i])
+            else:
+                pending = pending @ j.origin
             frame_names.append(j.child)
             frame_body.append(len(origins))
             frame_offset.append(pending.copy())
             frame_depth.append(depth)
         if not origins:
-            raise ValueError(f"urdf_path: {path!r}: no joint between {root!r} and {self.TCP_FRAME!r} moves")
+            raise ValueError(f"joints: no joint between {root!r} and {tcp_link!r} moves")
+        # The links off the chain (a hand's fingers, a camera mount) ride on the body of
+        # their parent, every movable joint among them held.
+        children: dict[str, list] = {}
+        for j in desc.joints:
+            children.setdefault(j.parent, []).append(j)
+        queue = list(frame_names)
+        while queue:
+            parent = queue.pop(0)
+            f = frame_names.index(parent)
+            for j in children.get(parent, []):
+                if j.child in frame_names:
+                    continue
+                if j.type not in ("revolute", "continuous", "prismatic", "fixed"):
+                    raise ValueError(f"urdf_path: {path!r}: joint {j.name!r} of type {j.type!r} below {root!r}; "
+                                     "allowed: revolute, continuous, prismatic, fixed")
+                if j.moves:
+                    coeffs, value = row(j)
+                    if coeffs.any():
+                        raise ValueError(f"joints: joint {j.name!r} follows the configuration but is not on the "
+                                         f"chain from {root!r} to {tcp_link!r}")
+                    T = _held_transform(j, value)
+                else:
+                    T = j.origin
+                frame_names.append(j.child)
+                frame_body.append(frame_body[f])
+                frame_offset.append(frame_offset[f] @ T)
+                frame_depth.append(frame_depth[f])
+                queue.append(j.child)
+        if virtual_tcp:
+            f = frame_names.index(tcp_link)
+            frame_names.append(self.tcp_frame)
+            frame_body.append(frame_body[f])
+            frame_offset.append(frame_offset[f] @ _translation(tcp_offset))
+            frame_depth.append(frame_depth[f])
         self.frame_names = frame_names
-        self.frame_depth = frame_depth  # revolute joints between the root and each frame
+        self.frame_depth = frame_depth  # moving joints between the root and each frame
+        self.frame_body = frame_body  # the moving body each frame rides on (0: the root)
         n_moving = len(origins)
 
         f64 = dict(dtype=torch.float64)
@@ -272,17 +383,20 @@ class ArmKinematics(nn.Module):
             W[f, :, b, :] = off.T
         tables["_frame_map"] = torch.tensor(W.reshape(4 * n_frames, 4 * n_bodies), **f64)
 
-        # The sphere cover, in chain order (a link's spheres together, the base's first).
-        unknown = sorted({p.link for p in prims} - set(frame_names))
-        if unknown:
-            raise ValueError(f"urdf_path: {path!r}: collision geometry on links {unknown}, not on the arm's chain")
+        # The sphere cover, in frame order (a link's spheres together, the root's first).
+        # Geometry on links above the root (a world or pedestal link) does not move with the arm.
+        prims = [p for p in desc.collisions if p.link in frame_names]
+        self.ignored_links = sorted({p.link for p in desc.collisions} - set(frame_names))
         if not prims:
-            raise ValueError(f"urdf_path: {path!r} has no <collision> geometry")
+            raise ValueError(f"urdf_path: {path!r} has no <collision> geometry below {root!r}")
         prims = sorted(prims, key=lambda p: frame_names.index(p.link))
         self.primitives: list[CollisionPrimitive] = prims
         local, radii, sframe, sprim = [], [], [], []
         for k, prim in enumerate(prims):
-            c, r = prim.sphere_cover()
+            try:
+                c, r = prim.sphere_cover(max_spheres_per_link, cover_volume_ratio)
+            except ValueError as err:
+                raise ValueError(f"urdf_path: {path!r}: link {prim.link!r}: {err}") from err
             local.append(c)
             radii.append(r)
             sframe += [frame_names.index(prim.link)] * len(r)
@@ -290,7 +404,7 @@ class ArmKinematics(nn.Module):
         local, radii = np.concatenate(local), np.concatenate(radii)
         self.sphere_link_names = [frame_names[f] for f in sframe]
         # the points: every sphere centre, then the TCP, in the frame of their body
-        tcp = frame_names.index(self.TCP_FRAME)
+        tcp = frame_names.index(self.tcp_frame)
         points = [(sframe[i], np.append(local[i], 1.0)) for i in range(len(radii))] + [(tcp, np.eye(4)[:, 3])]
         P = np.zeros((len(points), n_bodies, 4))
         for i, (f, h) in enumerate(points):
@@ -302,11 +416,19 @@ class ArmKinematics(nn.Module):
             self.register_buffer(name, value.to(device=device, dtype=dtype), persistent=not name.startswith("_"))
         self.register_buffer("sphere_frame", torch.tensor(sframe, dtype=torch.long, device=device))
         self.register_buffer("sphere_primitive", torch.tensor(sprim, dtype=torch.long, device=device))
-        table = [n not in self.TABLE_LINKS for n in self.sphere_link_names]
-        self.register_buffer("table_mask", torch.tensor(table, device=device))
-        self.table_index = _index_of(np.flatnonzero(table).tolist())
         self._tables64 = tables  # float64 copies for construction-time checks (self pairs at HOME)
+        self._set_table_links(self.TABLE_LINKS)
         self._set_self_pairs([])
+
+    def _set_table_links(self, links: Iterable[str]) -> None:
+        """Exempt the spheres of ``links`` (which stand on the table) from the table test."""
+        self.table_links = tuple(links)
+        unknown = sorted(set(self.table_links) - set(self.frame_names))
+        if unknown:
+            raise ValueError(f"table_links: unknown links {unknown}; allowed: {self.frame_names}")
+        table = [n not in self.table_links for n in self.sphere_link_names]
+        self.register_buffer("table_mask", torch.tensor(table, device=self.sphere_radii.device))
+        self.table_index = _index_of(np.flatnonzero(table).tolist())
 
     # ------------------------------------------------------------ self pairs
     def _set_self_pairs(self, link_pairs: Iterable[tuple[str, str]]) -> None:
@@ -457,7 +579,7 @@ class ArmKinematics(nn.Module):
 
     def tcp_pose(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rotation ``(..., 3, 3)`` and position ``(..., 3)`` of the tcp frame."""
-        f = self.frame_names.index(self.TCP_FRAME)
+        f = self.frame_names.index(self.tcp_frame)
         rot, pos = self._frames(q, slice(4 * f, 4 * f + 4))
         return rot[..., 0, :, :], pos[..., 0, :]
 
@@ -497,16 +619,19 @@ class ArmKinematics(nn.Module):
 
     # ------------------------------------------------------------ reference
     def reference_fk(self, q: torch.Tensor) -> torch.Tensor:
-        """TCP position through pytorch-kinematics' generic chain (slow; for checks)."""
+        """TCP position through pytorch-kinematics' generic chain on the same URDF (slow; for checks)."""
         import pytorch_kinematics as pk
 
         self._check_q(q)
         if self._reference_chain is None:
-            with open(self.urdf_path) as fh:
-                self._reference_chain = pk.build_serial_chain_from_urdf(fh.read(), self.TCP_FRAME)
+            with open(self.urdf_path, "rb") as fh:
+                root = self.frame_names[0]
+                self._reference_chain = pk.build_serial_chain_from_urdf(fh.read(), self.tcp_link, root)
         full = self.full_joints(q.to(self.dtype)).to(q.dtype)
         chain = self._reference_chain.to(dtype=q.dtype, device=q.device)
         names = chain.get_joint_parameter_names()
         order = [self.chain_joint_names.index(n) for n in names]
         m = chain.forward_kinematics(full.reshape(-1, full.shape[-1])[:, order]).get_matrix()
-        return m[:, :3, 3].reshape(*q.shape[:-1], 3)
+        offset = torch.tensor(self.tcp_offset, dtype=q.dtype, device=q.device)
+        tcp = m[:, :3, 3] + m[:, :3, :3] @ offset
+        return tcp.reshape(*q.shape[:-1], 3)

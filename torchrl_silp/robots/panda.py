@@ -6,8 +6,8 @@ import os
 
 import torch
 
-from torchrl_silp.robots.base import ArmKinematics
-from torchrl_silp.robots.urdf import asset_path
+from torchrl_silp.robots.urdf import asset_path, load_description, serial_chain
+from torchrl_silp.robots.urdf_arm import URDFArm
 
 __all__ = ["Panda", "panda_urdf_path"]
 
@@ -19,8 +19,8 @@ def panda_urdf_path() -> str:
     return asset_path("panda.urdf")
 
 
-class Panda(ArmKinematics):
-    """Franka Emika Panda with the Franka Hand (fingers open), seven active joints (an :class:`ArmKinematics`).
+class Panda(URDFArm):
+    """Franka Emika Panda with the Franka Hand (fingers open), seven active joints (a :class:`URDFArm`).
 
     Collision geometry is the sphere cover of the URDF's ``<collision>``
     primitives; ``table_mask`` selects the spheres checked against the table
@@ -45,7 +45,7 @@ class Panda(ArmKinematics):
 
     Examples:
         >>> import torch
-        >>> from torchrl_silp.panda import Panda
+        >>> from torchrl_silp.robots import Panda
         >>> robot = Panda()
         >>> q = torch.tensor(Panda.HOME)
         >>> robot.fk(q).shape
@@ -73,15 +73,25 @@ class Panda(ArmKinematics):
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
     ):
+        path = panda_urdf_path() if urdf_path is None else urdf_path
         super().__init__(
-            panda_urdf_path() if urdf_path is None else urdf_path,
+            path,
             root="panda_link0",
-            config_joints=JOINTS,
+            joints=JOINTS,
+            ee_link=self.TCP_FRAME,
+            self_collision_pairs=self._gap_pairs(path),
             device=device,
             dtype=dtype,
         )
-        depth = dict(zip(self.frame_names, self.frame_depth))
-        links = sorted(set(self.sphere_link_names), key=self.frame_names.index)
-        self._set_self_pairs(
-            [(x, y) for i, x in enumerate(links) for y in links[i + 1:] if abs(depth[x] - depth[y]) >= self.SELF_COLLISION_GAP]
-        )
+
+    @classmethod
+    def _gap_pairs(cls, path) -> list[tuple[str, str]]:
+        """Link pairs at least :attr:`SELF_COLLISION_GAP` moving joints apart along the chain."""
+        depth, d = {}, 0
+        chain = serial_chain(load_description(path).joints, "panda_link0", cls.TCP_FRAME)
+        depth["panda_link0"] = 0
+        for j in chain:
+            d += j.moves
+            depth[j.child] = d
+        links = list(depth)
+        return [(x, y) for i, x in enumerate(links) for y in links[i + 1:] if abs(depth[x] - depth[y]) >= cls.SELF_COLLISION_GAP]

@@ -7,8 +7,8 @@ import os
 
 import torch
 
-from torchrl_silp.robots.base import ArmKinematics
 from torchrl_silp.robots.urdf import asset_path
+from torchrl_silp.robots.urdf_arm import URDFArm
 
 __all__ = ["UR5e", "default_urdf_path", "ACTIVE_JOINTS"]
 
@@ -30,8 +30,8 @@ def default_urdf_path() -> str:
     return asset_path("ur5e.urdf")
 
 
-class UR5e(ArmKinematics):
-    """UR5e with a Robotiq 2F-140-sized gripper, three active joints (an :class:`ArmKinematics`).
+class UR5e(URDFArm):
+    """UR5e with a Robotiq 2F-140-sized gripper, three active joints (a :class:`URDFArm`).
 
     Only shoulder_pan, shoulder_lift and elbow are active; wrist_1 follows them
     (``wrist_1 = -pi/2 - (shoulder_lift + elbow)``) so that the tool axis points
@@ -39,8 +39,9 @@ class UR5e(ArmKinematics):
     that is a linear map from the 3 active angles to the chain's 6.
 
     The base may rest on the table (its spheres are not checked against ``z = 0``);
-    the self test checks every gripper sphere against every sphere of
-    ``self_collision_links``.
+    the self test is the paper task's: every gripper sphere against every sphere of
+    ``self_collision_links`` (the pairs found by sampling, :class:`URDFArm`'s default,
+    would also check the upper arm against the wrist, which this task never did).
 
     Args:
         urdf_path: URDF file; defaults to the one shipped in the package.
@@ -79,11 +80,12 @@ class UR5e(ArmKinematics):
         super().__init__(
             default_urdf_path() if urdf_path is None else urdf_path,
             root="base_link",
-            config_joints=ACTIVE_JOINTS,
+            joints=ACTIVE_JOINTS,
+            ee_link=self.TCP_FRAME,
             coupled=COUPLED_JOINTS,
+            self_collision_pairs=[(g, o) for g in self.GRIPPER_LINKS for o in self_collision_links],
             device=device,
             dtype=dtype,
         )
         if not set(self.GRIPPER_LINKS) <= set(self.sphere_link_names):
             raise ValueError(f"urdf_path: {self.urdf_path!r}: no collision geometry on {self.GRIPPER_LINKS}")
-        self._set_self_pairs([(g, o) for g in self.GRIPPER_LINKS for o in self_collision_links])

@@ -1,16 +1,25 @@
-"""URDF reading for the robot layer: joints, origins, serial chains and collision primitives.
+"""URDF reading for the robot layer, through yourdfpy: joints, the link tree and collision geometry.
 
-Everything here is float64 numpy, read once when a robot is built; the batched
-torch kinematics live in :mod:`torchrl_silp.robots.base`. pytorch-kinematics'
-URDF parser keeps ``<visual>`` geometry only and rounds origins to float32, so
-the collision geometry and the origins are read from the text here.
+:func:`load_description` parses a robot description with ``yourdfpy`` (transmissions,
+``mimic`` and ``continuous`` joints, several ``<collision>`` elements per link and links
+without any are all part of the format it reads) and resolves every mesh file,
+``package://`` paths included, before anything else is built. What the robot layer keeps
+is plain float64 numpy, read once when a robot is built: :class:`UrdfJoint` for each
+joint and :class:`CollisionPrimitive` for each collision element (a box, cylinder,
+sphere or mesh); the batched torch kinematics live in :mod:`torchrl_silp.robots.base`.
+
+``package://<package>/<path>`` is looked up, in order, in the folders of ``package_dirs``
+(a folder that holds ``<package>/``, as Pinocchio's ``package_dirs``; or a mapping from a
+package name to its own folder), in those of ``ROS_PACKAGE_PATH``, and in the folders
+above the URDF file (a description shipped as ``<package>/urdf/robot.urdf``). A relative
+mesh path is taken from the URDF's folder.
 
 Examples:
-    >>> from torchrl_silp.robots.urdf import asset_path, parse_collisions, parse_joints, read_urdf, serial_chain
-    >>> text = read_urdf(asset_path("ur5e.urdf"))
-    >>> [j.name for j in serial_chain(parse_joints(text), "base_link", "tcp")][:2]
+    >>> from torchrl_silp.robots.urdf import asset_path, load_description, serial_chain
+    >>> desc = load_description(asset_path("ur5e.urdf"))
+    >>> [j.name for j in serial_chain(desc.joints, "base_link", "tcp")][:2]
     ['shoulder_pan_joint', 'shoulder_lift_joint']
-    >>> prim = parse_collisions(text)[0]
+    >>> prim = desc.collisions[0]
     >>> prim.link, prim.kind, prim.size
     ('base_link', 'cylinder', (0.075, 0.12))
     >>> centres, radii = prim.sphere_cover()
@@ -20,43 +29,37 @@ Examples:
 
 from __future__ import annotations
 
+import logging
 import math
 import os
-import xml.etree.ElementTree as ET
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
 __all__ = [
     "asset_path",
-    "read_urdf",
     "rpy_matrix",
-    "origin_matrix",
     "UrdfJoint",
-    "parse_joints",
-    "serial_chain",
     "CollisionPrimitive",
-    "parse_collisions",
+    "RobotDescription",
+    "load_description",
+    "resolve_package_path",
+    "serial_chain",
 ]
 
-#: joint types a chain may hold; ``continuous`` is a revolute joint without limits
-JOINT_TYPES = ("revolute", "continuous", "fixed")
-PRIMITIVE_KINDS = ("cylinder", "box", "sphere")
+#: joint types an arm's tree may hold; ``continuous`` is a revolute joint without limits
+JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed")
+PRIMITIVE_KINDS = ("cylinder", "box", "sphere", "mesh")
+
+PackageDirs = str | os.PathLike | Sequence[str | os.PathLike] | Mapping[str, str | os.PathLike] | None
 
 
 def asset_path(name: str) -> str:
     """Path of a robot description shipped with the package (``assets/`` installs as ``torchrl_silp.assets``)."""
     return str(resources.files("torchrl_silp.assets") / name)
-
-
-def read_urdf(path: str | os.PathLike) -> str:
-    """The text of a URDF file; a ValueError naming ``urdf_path`` when it cannot be read."""
-    try:
-        with open(path) as fh:
-            return fh.read()
-    except OSError as err:
-        raise ValueError(f"urdf_path: cannot read URDF file {os.fspath(path)!r}: {err}") from err
 
 
 def rpy_matrix(rpy) -> np.ndarray:
@@ -75,40 +78,18 @@ def rpy_matrix(rpy) -> np.ndarray:
     return rz @ ry @ rx
 
 
-def _floats(text: str | None, default: str, n: int, what: str) -> np.ndarray:
-    values = (text if text is not None else default).split()
-    if len(values) != n:
-        raise ValueError(f"urdf: {what} must hold {n} numbers, got {text!r}")
-    return np.array([float(v) for v in values])
-
-
-def origin_matrix(origin: ET.Element | None) -> np.ndarray:
-    """The 4x4 pose (float64) of a URDF ``<origin xyz rpy>`` element; identity when it is None."""
-    T = np.eye(4)
-    if origin is not None:
-        T[:3, :3] = rpy_matrix(_floats(origin.get("rpy"), "0 0 0", 3, "<origin rpy>"))
-        T[:3, 3] = _floats(origin.get("xyz"), "0 0 0", 3, "<origin xyz>")
-    return T
-
-
-def _root(urdf_text: str) -> ET.Element:
-    try:
-        return ET.fromstring(urdf_text)
-    except ET.ParseError as err:
-        raise ValueError(f"urdf: not well-formed XML: {err}") from err
-
-
 @dataclass(frozen=True)
 class UrdfJoint:
     """One ``<joint>`` of a URDF.
 
     Attributes:
         name: the joint's name.
-        type: ``"revolute"``, ``"continuous"``, ``"fixed"`` (or another URDF type, which chains reject).
+        type: ``"revolute"``, ``"continuous"``, ``"prismatic"``, ``"fixed"`` (or another URDF type).
         parent, child: the links it connects.
         origin: 4x4 pose (float64) of the child frame in the parent frame at zero angle.
-        axis: unit rotation axis in the child frame (URDF's default is x).
-        limits: ``(lower, upper)`` of ``<limit>``, or None.
+        axis: unit axis in the child frame (URDF's default is x).
+        limits: ``(lower, upper)`` of ``<limit>``, or None (a ``continuous`` joint's).
+        mimic: ``(joint, multiplier, offset)`` of a ``<mimic>`` element, or None.
     """
 
     name: str
@@ -118,65 +99,23 @@ class UrdfJoint:
     origin: np.ndarray
     axis: np.ndarray
     limits: tuple[float, float] | None
+    mimic: tuple[str, float, float] | None = None
 
-
-def parse_joints(urdf_text: str) -> list[UrdfJoint]:
-    """Every ``<joint>`` of a URDF, in document order."""
-    joints = []
-    for joint in _root(urdf_text).iter("joint"):
-        name = joint.get("name")
-        parent, child = joint.find("parent"), joint.find("child")
-        if parent is None or child is None:
-            raise ValueError(f"urdf: joint {name!r} needs a <parent> and a <child>")
-        axis = _floats(joint.find("axis").get("xyz") if joint.find("axis") is not None else None, "1 0 0", 3,
-                       f"joint {name!r} <axis xyz>")
-        norm = float(np.linalg.norm(axis))
-        if joint.get("type") in ("revolute", "continuous") and norm < 1e-9:
-            raise ValueError(f"urdf: joint {name!r} has a zero <axis>")
-        limit = joint.find("limit")
-        limits = None
-        if limit is not None and limit.get("lower") is not None and limit.get("upper") is not None:
-            limits = (float(limit.get("lower")), float(limit.get("upper")))
-        joints.append(
-            UrdfJoint(name, joint.get("type"), parent.get("link"), child.get("link"), origin_matrix(joint.find("origin")),
-                      axis / norm if norm > 0 else axis, limits)
-        )
-    return joints
-
-
-def serial_chain(joints: list[UrdfJoint], root: str, tip: str) -> list[UrdfJoint]:
-    """The joints from link ``root`` to link ``tip``, root first; a ValueError when no such path exists.
-
-    Every joint on the path must be ``revolute``, ``continuous`` or ``fixed``.
-    """
-    by_child = {}
-    for j in joints:
-        if j.child in by_child:
-            raise ValueError(f"urdf: link {j.child!r} is the child of two joints")
-        by_child[j.child] = j
-    path, link = [], tip
-    while link != root:
-        if link not in by_child:
-            where = "is not a link of the URDF" if link == tip else f"is reached from {tip!r} but not from {root!r}"
-            raise ValueError(f"urdf: link {link!r} {where}")
-        j = by_child[link]
-        if j.type not in JOINT_TYPES:
-            raise ValueError(f"urdf: joint {j.name!r} has type {j.type!r}; allowed: {', '.join(JOINT_TYPES)}")
-        path.append(j)
-        link = j.parent
-        if len(path) > len(joints):  # pragma: no cover - a loop, which the child check above rules out
-            raise ValueError("urdf: the joints form a loop")
-    return path[::-1]
+    @property
+    def moves(self) -> bool:
+        return self.type in ("revolute", "continuous", "prismatic")
 
 
 class CollisionPrimitive:
-    """One ``<collision>`` element: a cylinder (axis along local z), box or sphere.
+    """One ``<collision>`` element: a cylinder (axis along local z), box, sphere or mesh.
 
     Attributes:
         link: name of the link it belongs to.
-        kind: ``"cylinder"``, ``"box"`` or ``"sphere"``.
-        size: cylinder ``(radius, length)``, box ``(x, y, z)`` or sphere ``(radius,)``.
+        kind: ``"cylinder"``, ``"box"``, ``"sphere"`` or ``"mesh"``.
+        size: cylinder ``(radius, length)``, box ``(x, y, z)``, sphere ``(radius,)``; a mesh's
+            ``scale`` ``(sx, sy, sz)``.
         transform: 4x4 pose of the primitive in its link frame (float64 numpy).
+        mesh_path: the resolved mesh file (meshes only).
 
     Examples:
         >>> import numpy as np
@@ -186,14 +125,41 @@ class CollisionPrimitive:
         (2, True)
     """
 
-    def __init__(self, link: str, kind: str, size: tuple[float, ...], transform: np.ndarray):
-        self.link, self.kind, self.size, self.transform = link, kind, tuple(size), transform
+    def __init__(self, link: str, kind: str, size: tuple[float, ...], transform: np.ndarray,
+                 mesh_path: str | None = None):
+        if kind not in PRIMITIVE_KINDS:
+            raise ValueError(f"kind must be one of {PRIMITIVE_KINDS}, got {kind!r}")
+        self.link, self.kind, self.size, self.transform = link, kind, tuple(float(s) for s in size), transform
+        self.mesh_path = mesh_path
 
     def __repr__(self) -> str:
-        return f"CollisionPrimitive(link={self.link!r}, kind={self.kind!r}, size={self.size})"
+        where = f", mesh_path={self.mesh_path!r}" if self.mesh_path else ""
+        return f"CollisionPrimitive(link={self.link!r}, kind={self.kind!r}, size={self.size}{where})"
 
-    def sphere_cover(self) -> tuple[np.ndarray, np.ndarray]:
-        """A conservative sphere cover: every point of the solid lies in some sphere.
+    def trimesh(self):
+        """The element's surface as a ``trimesh.Trimesh`` in its link frame (scaled and placed)."""
+        import trimesh
+
+        if self.kind == "mesh":
+            mesh = load_mesh(self.mesh_path, self.size)
+        elif self.kind == "box":
+            mesh = trimesh.creation.box(extents=self.size)
+        elif self.kind == "cylinder":
+            mesh = trimesh.creation.cylinder(radius=self.size[0], height=self.size[1], sections=64)
+        else:
+            mesh = trimesh.creation.icosphere(subdivisions=3, radius=self.size[0])
+        return mesh.copy().apply_transform(self.transform)
+
+    def sphere_cover(self, max_spheres: int = 8, volume_ratio: float = 2.5) -> tuple[np.ndarray, np.ndarray]:
+        """A conservative sphere cover: every point of the element lies in some sphere.
+
+        Primitives have an analytic cover (every point of the solid); a mesh's is fitted by
+        :func:`torchrl_silp.robots.covers.mesh_sphere_cover` (every point of its surface, no
+        tolerance: each triangle lies in one sphere) and cached on disk.
+
+        Args:
+            max_spheres, volume_ratio: a mesh's bound on spheres and its target of the cover's
+                volume over the mesh's (see :func:`~torchrl_silp.robots.covers.mesh_sphere_cover`).
 
         Returns:
             centres ``(n, 3)`` in the link frame and radii ``(n,)`` (float64 numpy).
@@ -222,37 +188,192 @@ class CollisionPrimitive:
             axes = [-size[i] / 2 + step[i] * (np.arange(counts[i]) + 0.5) for i in range(3)]
             local = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
             radii = np.full(len(local), 0.5 * float(np.linalg.norm(step)))
-        else:  # pragma: no cover - rejected by the parser
-            raise ValueError(f"unsupported primitive {self.kind!r}")
+        else:
+            from torchrl_silp.robots.covers import cached_mesh_cover
+
+            mesh = load_mesh(self.mesh_path, self.size)
+            local, radii = cached_mesh_cover(mesh, max_spheres=max_spheres, volume_ratio=volume_ratio)
         centres = local @ self.transform[:3, :3].T + self.transform[:3, 3]
         return centres, radii
 
 
-def parse_collisions(urdf_text: str) -> list[CollisionPrimitive]:
-    """Every ``<collision>`` primitive of a URDF, link by link in document order.
+def load_mesh(path: str, scale=(1.0, 1.0, 1.0)):
+    """A mesh file as one ``trimesh.Trimesh`` (a scene's parts concatenated), scaled; ValueError if unreadable."""
+    import trimesh
 
-    Only cylinders, boxes and spheres are read (meshes have no analytic sphere cover).
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as err:  # trimesh raises many types for a file it cannot read
+        raise ValueError(f"cannot read mesh {path!r}: {err}") from err
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"mesh {path!r} holds no triangles")
+    mesh = mesh.copy()
+    mesh.apply_scale(np.asarray(scale, dtype=np.float64)) if np.ptp(scale) else mesh.apply_scale(float(scale[0]))
+    return mesh
+
+
+def _package_roots(package_dirs: PackageDirs) -> tuple[dict[str, Path], list[Path]]:
+    if package_dirs is None:
+        return {}, []
+    if isinstance(package_dirs, Mapping):
+        return {str(k): Path(v) for k, v in package_dirs.items()}, []
+    if isinstance(package_dirs, (str, os.PathLike)):
+        package_dirs = [package_dirs]
+    return {}, [Path(p) for p in package_dirs]
+
+
+def resolve_package_path(filename: str, urdf_path: str | os.PathLike, package_dirs: PackageDirs = None) -> Path:
+    """The file a URDF's ``<mesh filename>`` names (see the module docstring); ValueError naming what was tried.
+
+    Examples:
+        >>> import os, tempfile
+        >>> root = tempfile.mkdtemp()
+        >>> os.makedirs(os.path.join(root, "my_robot", "meshes"))
+        >>> open(os.path.join(root, "my_robot", "meshes", "link.stl"), "w").close()
+        >>> resolve_package_path("package://my_robot/meshes/link.stl", "/x/robot.urdf", [root]).name
+        'link.stl'
     """
-    prims: list[CollisionPrimitive] = []
-    for link in _root(urdf_text).iter("link"):
-        for col in link.findall("collision"):
-            T = origin_matrix(col.find("origin"))
-            geom = col.find("geometry")
-            if geom is None or len(geom) != 1:
-                raise ValueError(f"urdf: link {link.get('name')!r} has a <collision> without one geometry")
-            g = geom[0]
-            if g.tag == "cylinder":
-                size = (float(g.get("radius")), float(g.get("length")))
-            elif g.tag == "box":
-                size = tuple(float(v) for v in _floats(g.get("size"), "", 3, f"link {link.get('name')!r} <box size>"))
-            elif g.tag == "sphere":
-                size = (float(g.get("radius")),)
+    urdf_dir = Path(urdf_path).resolve().parent
+    if filename.startswith("file://"):
+        filename = filename[len("file://"):]
+    if not filename.startswith("package://"):
+        path = Path(filename) if os.path.isabs(filename) else urdf_dir / filename
+        if path.is_file():
+            return path
+        raise ValueError(f"mesh file {filename!r} not found (looked for {str(path)!r})")
+    package, _, rest = filename[len("package://"):].partition("/")
+    by_name, parents = _package_roots(package_dirs)
+    candidates = []
+    if package in by_name:
+        candidates.append(by_name[package] / rest)
+    ros = [Path(p) for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
+    for parent in [*parents, *ros, *urdf_dir.parents, urdf_dir]:
+        candidates.append(parent / package / rest)
+        if parent.name == package:
+            candidates.append(parent / rest)
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise ValueError(
+        f"mesh {filename!r} not found: package {package!r} is in none of package_dirs "
+        f"{[str(p) for p in [*by_name.values(), *parents]] or 'None'}, ROS_PACKAGE_PATH or the folders above the URDF"
+    )
+
+
+@dataclass
+class RobotDescription:
+    """What the robot layer reads of a URDF.
+
+    Attributes:
+        path: the URDF file.
+        name: the ``<robot name>``.
+        root: the root link of the link tree.
+        links: every link's name, in document order.
+        joints: every kinematic joint (transmissions are not joints), in document order.
+        collisions: every ``<collision>`` element, link by link in document order; meshes resolved.
+    """
+
+    path: str
+    name: str
+    root: str
+    links: list[str]
+    joints: list[UrdfJoint]
+    collisions: list[CollisionPrimitive]
+
+
+def load_description(urdf_path: str | os.PathLike, package_dirs: PackageDirs = None) -> RobotDescription:
+    """Read a URDF through yourdfpy and resolve its collision meshes.
+
+    Every error is a ValueError whose message starts with ``urdf_path:`` (a file that cannot
+    be read, is not a URDF, has no link or names a mesh that cannot be found).
+    """
+    import yourdfpy
+
+    path = os.fspath(urdf_path)
+    if not os.path.isfile(path):
+        raise ValueError(f"urdf_path: no such file {path!r}")
+    # yourdfpy logs what it cannot resolve and goes on; every mesh is resolved (or refused) below
+    logging.getLogger("yourdfpy").setLevel(logging.CRITICAL)
+    try:
+        urdf = yourdfpy.URDF.load(path, build_scene_graph=False, build_collision_scene_graph=False,
+                                  load_meshes=False, load_collision_meshes=False)
+        robot = urdf.robot
+    except Exception as err:  # lxml and yourdfpy raise many types for a file that is not a URDF
+        raise ValueError(f"urdf_path: {path!r} is not a URDF: {type(err).__name__}: {err}") from err
+    if not robot.links:
+        raise ValueError(f"urdf_path: {path!r} is not a robot description: its <robot> holds no <link>")
+    joints = []
+    for j in robot.joints:
+        axis = np.asarray(j.axis if j.axis is not None else (1.0, 0.0, 0.0), dtype=np.float64)
+        norm = float(np.linalg.norm(axis))
+        if j.type in ("revolute", "continuous", "prismatic") and norm < 1e-9:
+            raise ValueError(f"urdf_path: {path!r}: joint {j.name!r} has a zero <axis>")
+        limits = None
+        if j.type != "continuous" and j.limit is not None and j.limit.lower is not None and j.limit.upper is not None:
+            limits = (float(j.limit.lower), float(j.limit.upper))
+        mimic = None
+        if j.mimic is not None:
+            mimic = (j.mimic.joint, float(j.mimic.multiplier if j.mimic.multiplier is not None else 1.0),
+                     float(j.mimic.offset if j.mimic.offset is not None else 0.0))
+        origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=np.float64)
+        joints.append(UrdfJoint(j.name, j.type, j.parent, j.child, origin, axis / norm if norm > 0 else axis,
+                                limits, mimic))
+    collisions = []
+    for link in robot.links:
+        for col in link.collisions:
+            T = np.eye(4) if col.origin is None else np.asarray(col.origin, dtype=np.float64)
+            g = col.geometry
+            where = f"urdf_path: {path!r}: link {link.name!r}"
+            if g is None:
+                raise ValueError(f"{where} has a <collision> without a geometry")
+            if g.box is not None:
+                kind, size = "box", tuple(float(v) for v in np.asarray(g.box.size).reshape(-1))
+            elif g.cylinder is not None:
+                kind, size = "cylinder", (float(g.cylinder.radius), float(g.cylinder.length))
+            elif g.sphere is not None:
+                kind, size = "sphere", (float(g.sphere.radius),)
+            elif g.mesh is not None:
+                scale = g.mesh.scale if g.mesh.scale is not None else 1.0
+                kind, size = "mesh", tuple(float(s) for s in np.broadcast_to(np.asarray(scale, dtype=float), (3,)))
             else:
-                raise ValueError(
-                    f"urdf: link {link.get('name')!r}: collision geometry {g.tag!r} is not supported; "
-                    f"allowed: {', '.join(PRIMITIVE_KINDS)}"
-                )
+                raise ValueError(f"{where} has a <collision> geometry of no known kind; allowed: {PRIMITIVE_KINDS}")
             if min(size) <= 0:
-                raise ValueError(f"urdf: link {link.get('name')!r}: {g.tag} size must be positive, got {size}")
-            prims.append(CollisionPrimitive(link.get("name"), g.tag, size, T))
-    return prims
+                raise ValueError(f"{where}: {kind} size must be positive, got {size}")
+            mesh_path = None
+            if kind == "mesh":
+                try:
+                    mesh_path = str(resolve_package_path(g.mesh.filename, path, package_dirs))
+                except ValueError as err:
+                    raise ValueError(f"{where}: {err} (set package_dirs)") from err
+            collisions.append(CollisionPrimitive(link.name, kind, size, T, mesh_path))
+    links = [link.name for link in robot.links]
+    children = {j.child for j in joints}
+    roots = [name for name in links if name not in children]
+    if len(roots) != 1:
+        raise ValueError(f"urdf_path: {path!r}: the links form no single tree (links without a parent joint: {roots})")
+    return RobotDescription(path, robot.name, roots[0], links, joints, collisions)
+
+
+def serial_chain(joints: list[UrdfJoint], root: str, tip: str) -> list[UrdfJoint]:
+    """The joints from link ``root`` to link ``tip``, root first; a ValueError when no such path exists.
+
+    Every joint on the path must be ``revolute``, ``continuous``, ``prismatic`` or ``fixed``.
+    """
+    by_child = {}
+    for j in joints:
+        if j.child in by_child:
+            raise ValueError(f"urdf: link {j.child!r} is the child of two joints")
+        by_child[j.child] = j
+    path, link = [], tip
+    while link != root:
+        if link not in by_child:
+            where = "is not a link of the URDF" if link == tip and not path else f"is reached from {tip!r} but not from {root!r}"
+            raise ValueError(f"urdf: link {link!r} {where}")
+        j = by_child[link]
+        if j.type not in JOINT_TYPES:
+            raise ValueError(f"urdf: joint {j.name!r} has type {j.type!r}; allowed: {', '.join(JOINT_TYPES)}")
+        path.append(j)
+        link = j.parent
+        if len(path) > len(joints):  # pragma: no cover - a loop, which the child check above rules out
+            raise ValueError("urdf: the joints form a loop")
+    return path[::-1]
