@@ -66,12 +66,34 @@ def make_model(cfg, device):
         if model.device != torch.device(device):
             model.to(device)
     else:
-        model = _make_model(cfg.env.name, device=device, **kwargs)
+        robot = OmegaConf.to_container(cfg.env.robot, resolve=True) if cfg.env.get("robot") else {}
+        if robot:
+            kwargs["robot"] = robot
+        try:
+            model = _make_model(cfg.env.name, device=device, **kwargs)
+        except (ValueError, TypeError) as error:
+            raise ConfigError(_config_key(str(error), robot), " ".join(str(error).split())) from error
     try:
         ensure_checked(model)
     except TaskModelError as error:
         raise ConfigError("env.model", str(error)) from error
     return model
+
+
+def _config_key(message: str, robot: dict) -> str:
+    """The config key a model's or robot's refusal names: its message starts with the parameter
+    (``joints: ...``, ``boxes[1].size: ...``, ``__init__() got an unexpected keyword argument 'x'``)."""
+    import inspect
+    import re
+
+    from torchrl_silp.robots import URDFArm
+
+    unexpected = re.search(r"unexpected keyword argument '(\w+)'", message)
+    name = unexpected.group(1) if unexpected else re.split(r"[:\s\[.]", message, maxsplit=1)[0]
+    robot_params = set(inspect.signature(URDFArm).parameters) - {"device", "dtype"}
+    if robot and (name in robot_params or (unexpected and name in robot)):
+        return f"env.robot.{name}"
+    return f"env.model.{name}" if name else "env.model"
 
 
 def observation_keys(cfg) -> list[str]:

@@ -46,7 +46,7 @@ LOGGER_BACKENDS = (None, "", "csv", "tensorboard", "wandb", "mlflow")  # None or
 RESUME_MODES = (False, True, "must")
 
 # fields whose change makes a checkpoint's networks or buffers the wrong shape or meaning
-RESUME_FIELDS = ("algorithm", "env.name", "env.model", "env.num_envs", "env.max_steps", "network",
+RESUME_FIELDS = ("algorithm", "env.name", "env.model", "env.robot", "env.num_envs", "env.max_steps", "network",
                  "replay_buffer.size", "replay_buffer.demo_size", "replay_buffer.her", "silp.bc",
                  "source", "source_run_dir")
 # fields whose presence (set or null) must match; their value may change on resume

@@ -35,10 +35,12 @@ CONFIG_DIR = Path(__file__).resolve().parent / "config"
 @dataclass
 class EnvConfig:
     name: str = "ur5e_reach"
+    run_name: str = "${env.name}"  # the run folder's task part (env=urdf_reach: the URDF file's name)
     num_envs: int = 32
     max_steps: int = 50
     collision_type: int = 2
     model: dict[str, Any] = field(default_factory=dict)
+    robot: dict[str, Any] = field(default_factory=dict)  # env=urdf_reach: URDFArm's keyword arguments
 
 
 @dataclass
@@ -167,9 +169,11 @@ class TrainConfig:
 
 def register() -> None:
     """Register the recipes' schemas: ``train_schema`` (sac_silp, ddpg_silp), ``bc_schema`` (bc) and
-    ``transfer_schema`` (transfer), and the ``class_name`` resolver."""
+    ``transfer_schema`` (transfer), and the ``class_name`` and ``file_stem`` resolvers."""
     # ${class_name:a.b.Arm3Reach} -> "Arm3Reach": config/env/custom.yaml names a user's task by its class
     OmegaConf.register_new_resolver("class_name", lambda target: str(target).rsplit(".", 1)[-1], replace=True)
+    # ${file_stem:/a/ur10_robot.urdf} -> "ur10_robot": config/env/urdf_reach.yaml names the run's folder by its URDF
+    OmegaConf.register_new_resolver("file_stem", lambda path: Path(str(path)).stem, replace=True)
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
     ConfigStore.instance().store(name="bc_schema", node=BCConfig)
     ConfigStore.instance().store(name="transfer_schema", node=TransferConfig)
@@ -188,14 +192,15 @@ def config_context():
 
 
 def free_model_keys(overrides: list[str] | tuple[str, ...]) -> list[str]:
-    """``env.model.<key>=value`` as ``++env.model.<key>=value``: ``env.model`` holds a task model's keyword
-    arguments, whichever the model takes, so a key its env yaml does not list is added, not refused.
+    """``env.model.<key>=value`` as ``++env.model.<key>=value`` (and ``env.robot.`` the same): ``env.model``
+    holds a task model's keyword arguments and ``env.robot`` a robot's, whichever they take, so a key the
+    env yaml does not list is added, not refused.
 
     Examples:
-        >>> free_model_keys(["env.model.n_discs=2", "+env.model.a=1", "seed=3"])
-        ['++env.model.n_discs=2', '+env.model.a=1', 'seed=3']
+        >>> free_model_keys(["env.model.n_discs=2", "+env.model.a=1", "env.robot.held={a: 1}", "seed=3"])
+        ['++env.model.n_discs=2', '+env.model.a=1', '++env.robot.held={a: 1}', 'seed=3']
     """
-    return [f"++{o}" if o.startswith("env.model.") and "=" in o else o for o in overrides]
+    return [f"++{o}" if o.startswith(("env.model.", "env.robot.")) and "=" in o else o for o in overrides]
 
 
 def load_config(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:

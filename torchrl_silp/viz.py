@@ -30,7 +30,7 @@ from torchrl_silp.models.base import TaskModel
 from torchrl_silp.models.ur5e import UR5eReach
 from torchrl_silp.robots.base import ArmKinematics
 
-__all__ = ["draw_scene", "render_rgb", "save_rollout_png", "save_task_rollout_png", "arm_polygons"]
+__all__ = ["draw_scene", "render_rgb", "save_rollout_png", "save_task_rollout_png", "arm_polygons", "save_cover_png"]
 
 # Scene box drawn by default: the TCP workspace of the task plus the arm's
 # base, so that panels of different episodes share one scale.
@@ -145,7 +145,8 @@ def arm_polygons(robot: ArmKinematics, q3) -> tuple[list[np.ndarray], list[tuple
     """World-frame polygons and shaded RGBA face colours of the arm's collision primitives.
 
     Every polygon is a quad: a cylinder is 16 side quads and two caps of 8
-    quads each, a box six faces, a sphere a coarse latitude-longitude mesh.
+    quads each, a box six faces, a sphere a coarse latitude-longitude mesh;
+    a collision mesh is drawn as its sphere cover (what the collision test reads).
 
     Args:
         robot: the arm (:class:`~torchrl_silp.robots.base.ArmKinematics`: the UR5e, the Panda) whose
@@ -171,12 +172,21 @@ def arm_polygons(robot: ArmKinematics, q3) -> tuple[list[np.ndarray], list[tuple
     pos = pos.to("cpu", torch.float64).numpy()
     polys: list[np.ndarray] = []
     colours: list[tuple] = []
-    for prim in robot.primitives:
+    local = robot.sphere_local.to("cpu", torch.float64).numpy()
+    radii = robot.sphere_radii.to("cpu", torch.float64).numpy()
+    owner = robot.sphere_primitive.cpu().numpy()
+    for k, prim in enumerate(robot.primitives):
         f = robot.frame_names.index(prim.link)
         link_pose = np.eye(4)
         link_pose[:3, :3], link_pose[:3, 3] = rot[f], pos[f]
         pose = link_pose @ prim.transform
-        if prim.kind == "cylinder":
+        if prim.kind == "mesh":
+            faces = []
+            for i in np.flatnonzero(owner == k):
+                ball = link_pose.copy()
+                ball[:3, 3] = link_pose[:3, :3] @ local[i] + link_pose[:3, 3]
+                faces += _sphere_faces(radii[i], ball)
+        elif prim.kind == "cylinder":
             faces = _cylinder_faces(prim.size[0], prim.size[1], pose)
         elif prim.kind == "box":
             half = np.asarray(prim.size) / 2
@@ -644,3 +654,67 @@ def save_task_rollout_png(model: TaskModel, rollout, path: str | os.PathLike, ma
     fig.legend(handles, labels, loc="lower right", fontsize=7, frameon=False)
     fig.savefig(path, format="png")
     return path
+
+
+def save_cover_png(robot: ArmKinematics, path: str | os.PathLike, q=None, *, max_faces: int = 10_000,
+                   view: tuple[float, float] = _DEFAULT_VIEW, dpi: int = 110) -> None:
+    """Save a picture of the arm's collision geometry (its meshes and primitives, grey) inside its sphere cover
+    (translucent blue), side by side: how closely the spheres the collision test reads wrap the real links.
+
+    Args:
+        robot: the arm.
+        path: the PNG file.
+        q: the configuration drawn (default: every joint at 0 within its limits, or ``robot.HOME``).
+        max_faces: a mesh with more triangles is drawn from an even subset of them (the picture only).
+    """
+    robot = _check_robot(robot)
+    if q is None:
+        q = robot.HOME if robot.HOME is not None else torch.zeros(robot.config_dim).clamp(
+            robot.joint_low.cpu().float(), robot.joint_high.cpu().float())
+    q = torch.as_tensor(_vector(q, robot.config_dim, "q"), dtype=robot.dtype, device=robot.device)
+    with torch.no_grad():
+        rot, pos = robot.frames(q)
+        centres, _ = robot.spheres_and_tcp(q)
+    rot, pos = rot.to("cpu", torch.float64).numpy(), pos.to("cpu", torch.float64).numpy()
+    centres = centres.to("cpu", torch.float64).numpy()
+    radii = robot.sphere_radii.to("cpu", torch.float64).numpy()
+    fig = Figure(figsize=(9.0, 4.6), dpi=dpi)
+    FigureCanvasAgg(fig)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.02, top=0.95, wspace=0.0)
+    meshes = []
+    for prim in robot.primitives:
+        f = robot.frame_names.index(prim.link)
+        pose = np.eye(4)
+        pose[:3, :3], pos_f = rot[f], pos[f]
+        pose[:3, 3] = pos_f
+        mesh = prim.trimesh()
+        tri = mesh.vertices[mesh.faces] @ pose[:3, :3].T + pose[:3, 3]
+        if len(tri) > max_faces:
+            tri = tri[np.linspace(0, len(tri) - 1, max_faces).astype(int)]
+        meshes.append(tri)
+    tri = np.concatenate(meshes)
+    balls = [face for c, r in zip(centres, radii) for face in _sphere_faces(r, _translation_pose(c))]
+    pts = np.concatenate([tri.reshape(-1, 3), centres + radii[:, None], centres - radii[:, None]])
+    low, high = pts.min(0), pts.max(0)
+    side = (high - low).max() / 2
+    mid = (high + low) / 2
+    for k, (title, with_cover) in enumerate((("collision geometry", False), ("its sphere cover", True))):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        ax.add_collection3d(Poly3DCollection(list(tri), facecolors=_shade(list(tri), mid, (0.55, 0.55, 0.55, 1.0)),
+                                             edgecolors="none"), autolim=False)
+        if with_cover:
+            ax.add_collection3d(Poly3DCollection(balls, facecolors=[(0.25, 0.45, 0.8, 0.18)],
+                                                 edgecolors=[(0.2, 0.35, 0.7, 0.25)], linewidths=0.3), autolim=False)
+        for i, lim in enumerate((ax.set_xlim, ax.set_ylim, ax.set_zlim)):
+            lim(mid[i] - side, mid[i] + side)
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=view[0], azim=view[1])
+        ax.tick_params(labelsize=6, pad=-3)
+        ax.set_title(f"{title}" + (f": {robot.n_spheres} spheres" if with_cover else ""), fontsize=9)
+    fig.savefig(os.fspath(path))
+
+
+def _translation_pose(centre: np.ndarray) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, 3] = centre
+    return pose

@@ -291,8 +291,59 @@ def _collision_net_block(name: str, block: dict, page: Path, draw: Path | None) 
     return lines
 
 
+def _robots_block(name: str, block: dict, page: Path, draw: Path | None) -> list[str]:
+    folder = Path(block["results"])
+    found = [json.loads((folder / f"{r}.json").read_text()) for r in block["robots"]]
+    rows = []
+    for r in found:
+        e, p = r["exact"], r["self_pairs"]
+        dropped = ", ".join(f"{len(v)} {k}" for k, v in (p["dropped"] or {}).items() if v) or "—"
+        rows.append([r["robot"], f"`{r['urdf']}`", ", ".join(r["geometry"]), str(len(r["joints"])), str(r["spheres"]),
+                     f"{e['box']['contacts']:,} / {e['box']['tests']:,}", str(e["box"]["missed"]),
+                     rate(e["box"]["false_alarm_rate"]), f"{e['self']['contacts']:,} / {e['self']['tests']:,}",
+                     str(e["self"]["missed"]), rate(e["self"]["false_alarm_rate"]),
+                     f"{len(p['checked'])} {'found' if p['found'] else 'the task’s rule'}; dropped {dropped}",
+                     f"{r['fk_max_error_m']:.0e} m"])
+    lines = [table(["Robot", "URDF", "Geometry", "Joints", "Spheres", "Box contacts (FCL) / tests", "Missed",
+                    "False alarms", "Self contacts (FCL) / tests", "Missed", "False alarms", "Self pairs",
+                    "FK vs pytorch-kinematics"], rows, ["l", "l", "l", *"r" * 9, "r"]), "",
+             "Each configuration is drawn over the joint limits, with boxes near the arm (centred on a random "
+             "point of a random link's cover, sides 1-30 cm); FCL judges each link's own collision geometry (its "
+             "meshes or primitives) against each box and each checked self pair, the cover the same tests on its "
+             "spheres. *Missed*: a contact FCL finds and the cover does not; *false alarms*: the cover's contacts "
+             "FCL does not confirm, as a share of the cover's. Self pairs: found by sampling as MoveIt's setup "
+             "assistant does (`torchrl_silp.robots.self_collision`), or the paper task's rule for the UR5e and "
+             "the Panda. FK: the largest TCP distance to pytorch-kinematics' on the same URDF, 1,000 "
+             "configurations, float64.", ""]
+    for r in found:
+        if not r["links"]:
+            continue
+        link_rows = [[f"`{x['link']}`", str(x["spheres"]), f"{x['cover_volume'] * 1e3:.2f}",
+                      f"{x['geometry_volume'] * 1e3:.2f}", f"{x['ratio']:.2f}"] for x in r["links"]]
+        total = [sum(x[k] for x in r["links"]) for k in ("cover_volume", "geometry_volume")]
+        link_rows.append(["all links", str(r["spheres"]), f"{total[0] * 1e3:.2f}", f"{total[1] * 1e3:.2f}",
+                          f"{total[0] / total[1]:.2f}"])
+        picture = page.parent / block["figures"] / f"{r['robot']}_cover.png"
+        if draw is not None or _drawing:
+            from torchrl_silp.recipes.robot_check import build
+            from torchrl_silp.viz import save_cover_png
+
+            picture.parent.mkdir(parents=True, exist_ok=True)
+            save_cover_png(build(r["spec"]), picture)
+        lines += [f"**{r['robot']}**: the cover per link (volumes in litres; the geometry's is the union of the "
+                  "link's solids, a mesh's convex hull where it is not closed).", "",
+                  table(["Link", "Spheres", "Cover", "Geometry", "Cover / geometry"], link_rows, ["l", *"r" * 4]), "",
+                  f"![{r['robot']}: collision geometry and sphere cover]({relpath(picture, page)})", ""]
+    commands = "; ".join(dict.fromkeys(f"`{r['command']}`" for r in found))
+    machines = "; ".join(dict.fromkeys(r["machine"] for r in found))
+    lines += [f"Files: `{folder}/<robot>.json`, made by {commands} ({machines}); regenerate with "
+              f"`python recipes/report.py --block {name}`.", ""]
+    return lines
+
+
 KINDS = {"runs": _runs_block, "headline": _headline_block, "benchmarks": _benchmarks_block,
-         "transfer": _transfer_block, "reaching": _reaching_block, "pick_place": _pick_place_block, "collision_net": _collision_net_block}
+         "transfer": _transfer_block, "reaching": _reaching_block, "pick_place": _pick_place_block, "collision_net": _collision_net_block,
+         "robots": _robots_block}
 _drawing = False  # set by write(): --check and tests render the text without drawing
 
 

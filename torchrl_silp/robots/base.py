@@ -228,8 +228,8 @@ class ArmKinematics(nn.Module):
         super().__init__()
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-        path = os.fspath(urdf_path)
-        desc = load_description(path, package_dirs)
+        desc = load_description(urdf_path, package_dirs)
+        path = desc.path
         self.urdf_path, self.package_dirs, self.description = path, package_dirs, desc
         self._reference_chain = None  # pytorch-kinematics' chain, built on first use by reference_fk
         root = desc.root if root is None else root

@@ -6,14 +6,19 @@ first of these reasons that holds (the names MoveIt's SRDF gives them in
 
 - ``rigid``: no moving joint lies between the two links (they never move apart);
 - ``adjacent``: a joint connects them, links without geometry in between collapsed;
-- ``default``: their covers overlap at the home configuration (a collision-free pose
-  of the real arm, so the overlap is an artefact of the conservative covers);
-- ``always``: their covers overlap in at least ``always_fraction`` of the sampled
-  configurations (uniform over the joint limits);
-- ``never``: their covers overlap in none of the sampled configurations.
+- ``default``: their collision geometry touches at the home configuration (a
+  collision-free pose of the real arm);
+- ``always``: it touches in at least ``always_fraction`` of the sampled configurations
+  (uniform over the joint limits);
+- ``never``: it touches in none of them.
 
-The covers are the arm's sphere covers (the geometry its collision test reads), so a
-pair the test checks is exactly a pair kept here.
+As in MoveIt, contact is judged on the URDF's own collision geometry (meshes and
+primitives, by FCL through ``python-fcl``), not on the sphere covers: covers are
+conservative, and a pair whose covers overlap although its meshes never touch (a flat
+base under the upper arm's housing) would otherwise block every configuration. Only the
+configurations where a pair's covers overlap are tested exactly (a cover holds its
+geometry, so elsewhere the geometry cannot touch). The kept pairs are then checked on the
+covers by the arm's self test.
 
 Examples:
     >>> from torchrl_silp.robots import UR5e
@@ -34,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-__all__ = ["SelfCollisionMatrix", "find_self_collision_pairs"]
+__all__ = ["SelfCollisionMatrix", "find_self_collision_pairs", "link_collision_objects"]
 
 
 @dataclass
@@ -44,7 +49,7 @@ class SelfCollisionMatrix:
     Attributes:
         kept: link pairs ``(a, b)`` checked, ``a`` before ``b`` in the arm's frame order.
         dropped: reason -> link pairs (see the module docstring for the reasons).
-        contact_fraction: link pair -> share of the sampled configurations where its covers overlap.
+        contact_fraction: link pair -> share of the sampled configurations where its geometry touches.
         samples: configurations sampled.
     """
 
@@ -87,6 +92,43 @@ def _link_overlaps(arm, q: torch.Tensor, links: list[str], pairs: list[tuple[str
     return torch.stack(out, -1) if out else torch.zeros(q.shape[0], 0, dtype=torch.bool, device=q.device)
 
 
+def link_collision_objects(arm) -> dict:
+    """One ``fcl.CollisionObject`` per link with collision geometry: its elements' meshes in the link frame, as one BVH."""
+    import fcl
+    import trimesh
+
+    out = {}
+    for link in dict.fromkeys(arm.sphere_link_names):
+        meshes = [p.trimesh() for p in arm.primitives if p.link == link]
+        mesh = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(mesh.vertices), len(mesh.faces))
+        bvh.addSubModel(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32))
+        bvh.endModel()
+        out[link] = fcl.CollisionObject(bvh, fcl.Transform())
+    return out
+
+
+def _exact_contacts(arm64, q: torch.Tensor, pairs, cover_overlap: torch.Tensor, objects: dict) -> torch.Tensor:
+    """Bool ``(N, P)``: whether each pair's collision geometry touches, tested where its covers overlap."""
+    import fcl
+
+    out = torch.zeros_like(cover_overlap)
+    rows, cols = cover_overlap.nonzero(as_tuple=True)
+    if rows.numel() == 0:
+        return out
+    rot, pos = arm64.frames(q)
+    index = {n: i for i, n in enumerate(arm64.frame_names)}
+    request = fcl.CollisionRequest()
+    rot, pos = rot.numpy(), pos.numpy()
+    for n, p in zip(rows.tolist(), cols.tolist()):  # construction time only: a few thousand FCL calls
+        a, b = pairs[p]
+        for link in (a, b):
+            objects[link].setTransform(fcl.Transform(rot[n, index[link]], pos[n, index[link]]))
+        out[n, p] = fcl.collide(objects[a], objects[b], request, fcl.CollisionResult()) > 0
+    return out
+
+
 def find_self_collision_pairs(arm, *, home=None, samples: int = 10_000, always_fraction: float = 0.95,
                               seed: int = 0, chunk: int = 2048) -> SelfCollisionMatrix:
     """Sort the arm's link pairs into kept and dropped (see the module docstring).
@@ -126,13 +168,15 @@ def find_self_collision_pairs(arm, *, home=None, samples: int = 10_000, always_f
     if arm.dtype != torch.float64 or arm.device.type != "cpu":
         # the overlaps are judged in float64 on the CPU, on a copy: the arm itself is left as it is
         arm64 = copy.deepcopy(arm).to(device="cpu", dtype=torch.float64)
-    at_home = _link_overlaps(arm64, home, links, candidates)[0]
+    objects = link_collision_objects(arm64)
+    at_home = _exact_contacts(arm64, home, candidates, _link_overlaps(arm64, home, links, candidates), objects)[0]
     gen = torch.Generator().manual_seed(seed)
     counts = torch.zeros(len(candidates), dtype=torch.long)
     for start in range(0, samples, chunk):
         n = min(chunk, samples - start)
         q = low + torch.rand(n, low.numel(), generator=gen, dtype=torch.float64) * (high - low)
-        counts += _link_overlaps(arm64, q, links, candidates).sum(0)
+        overlap = _link_overlaps(arm64, q, links, candidates)
+        counts += _exact_contacts(arm64, q, candidates, overlap, objects).sum(0)
     for k, pair in enumerate(candidates):
         frac = float(counts[k]) / samples
         acm.contact_fraction[pair] = frac

@@ -10,9 +10,11 @@ sphere or mesh); the batched torch kinematics live in :mod:`torchrl_silp.robots.
 
 ``package://<package>/<path>`` is looked up, in order, in the folders of ``package_dirs``
 (a folder that holds ``<package>/``, as Pinocchio's ``package_dirs``; or a mapping from a
-package name to its own folder), in those of ``ROS_PACKAGE_PATH``, and in the folders
-above the URDF file (a description shipped as ``<package>/urdf/robot.urdf``). A relative
-mesh path is taken from the URDF's folder.
+package name to its own folder), in those of ``ROS_PACKAGE_PATH``, in the folders above the
+URDF file (a description shipped as ``<package>/urdf/robot.urdf``) and in the share folder
+of pip's robotics packages (``<site-packages>/cmeel.prefix/share``, where
+``example-robot-data`` installs). A relative mesh path is taken from the URDF's folder. The
+URDF itself may be named by a ``package://`` path too (:func:`resolve_urdf_path`).
 
 Examples:
     >>> from torchrl_silp.robots.urdf import asset_path, load_description, serial_chain
@@ -47,6 +49,7 @@ __all__ = [
     "RobotDescription",
     "load_description",
     "resolve_package_path",
+    "resolve_urdf_path",
     "serial_chain",
 ]
 
@@ -222,7 +225,7 @@ def _package_roots(package_dirs: PackageDirs) -> tuple[dict[str, Path], list[Pat
     return {}, [Path(p) for p in package_dirs]
 
 
-def resolve_package_path(filename: str, urdf_path: str | os.PathLike, package_dirs: PackageDirs = None) -> Path:
+def resolve_package_path(filename: str, urdf_path: str | os.PathLike | None, package_dirs: PackageDirs = None) -> Path:
     """The file a URDF's ``<mesh filename>`` names (see the module docstring); ValueError naming what was tried.
 
     Examples:
@@ -233,11 +236,11 @@ def resolve_package_path(filename: str, urdf_path: str | os.PathLike, package_di
         >>> resolve_package_path("package://my_robot/meshes/link.stl", "/x/robot.urdf", [root]).name
         'link.stl'
     """
-    urdf_dir = Path(urdf_path).resolve().parent
+    urdf_dir = Path(urdf_path).resolve().parent if urdf_path is not None else None
     if filename.startswith("file://"):
         filename = filename[len("file://"):]
     if not filename.startswith("package://"):
-        path = Path(filename) if os.path.isabs(filename) else urdf_dir / filename
+        path = Path(filename) if os.path.isabs(filename) or urdf_dir is None else urdf_dir / filename
         if path.is_file():
             return path
         raise ValueError(f"mesh file {filename!r} not found (looked for {str(path)!r})")
@@ -247,7 +250,8 @@ def resolve_package_path(filename: str, urdf_path: str | os.PathLike, package_di
     if package in by_name:
         candidates.append(by_name[package] / rest)
     ros = [Path(p) for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
-    for parent in [*parents, *ros, *urdf_dir.parents, urdf_dir]:
+    near = [*urdf_dir.parents, urdf_dir] if urdf_dir is not None else []
+    for parent in [*parents, *ros, *near, *_cmeel_shares()]:
         candidates.append(parent / package / rest)
         if parent.name == package:
             candidates.append(parent / rest)
@@ -258,6 +262,30 @@ def resolve_package_path(filename: str, urdf_path: str | os.PathLike, package_di
         f"mesh {filename!r} not found: package {package!r} is in none of package_dirs "
         f"{[str(p) for p in [*by_name.values(), *parents]] or 'None'}, ROS_PACKAGE_PATH or the folders above the URDF"
     )
+
+
+def _cmeel_shares() -> list[Path]:
+    import site
+    import sys
+
+    folders = [*site.getsitepackages(), site.getusersitepackages(), *sys.path]
+    return [Path(f) / "cmeel.prefix" / "share" for f in dict.fromkeys(folders) if f and (Path(f) / "cmeel.prefix").is_dir()]
+
+
+def resolve_urdf_path(urdf_path: str | os.PathLike, package_dirs: PackageDirs = None) -> str:
+    """A URDF file's path: the path itself, or the file a ``package://`` path names (ValueError naming ``urdf_path``).
+
+    Examples:
+        >>> resolve_urdf_path(asset_path("ur5e.urdf")) == asset_path("ur5e.urdf")
+        True
+    """
+    path = os.fspath(urdf_path)
+    if not path.startswith("package://"):
+        return path
+    try:
+        return str(resolve_package_path(path, None, package_dirs))
+    except ValueError as err:
+        raise ValueError(f"urdf_path: {err}") from err
 
 
 @dataclass
@@ -284,12 +312,13 @@ class RobotDescription:
 def load_description(urdf_path: str | os.PathLike, package_dirs: PackageDirs = None) -> RobotDescription:
     """Read a URDF through yourdfpy and resolve its collision meshes.
 
-    Every error is a ValueError whose message starts with ``urdf_path:`` (a file that cannot
-    be read, is not a URDF, has no link or names a mesh that cannot be found).
+    Every error is a ValueError whose message starts with the parameter to fix: ``urdf_path:``
+    (a file that cannot be read, is not a URDF or has no link) or ``package_dirs:`` (a mesh that
+    cannot be found).
     """
     import yourdfpy
 
-    path = os.fspath(urdf_path)
+    path = resolve_urdf_path(urdf_path, package_dirs)
     if not os.path.isfile(path):
         raise ValueError(f"urdf_path: no such file {path!r}")
     # yourdfpy logs what it cannot resolve and goes on; every mesh is resolved (or refused) below
@@ -344,7 +373,7 @@ def load_description(urdf_path: str | os.PathLike, package_dirs: PackageDirs = N
                 try:
                     mesh_path = str(resolve_package_path(g.mesh.filename, path, package_dirs))
                 except ValueError as err:
-                    raise ValueError(f"{where}: {err} (set package_dirs)") from err
+                    raise ValueError(f"package_dirs: link {link.name!r} of {path!r}: {err}") from err
             collisions.append(CollisionPrimitive(link.name, kind, size, T, mesh_path))
     links = [link.name for link in robot.links]
     children = {j.child for j in joints}
