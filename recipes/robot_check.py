@@ -4,6 +4,7 @@ robot's own meshes (missed contacts and false alarms). One JSON per robot under 
 
     python recipes/robot_check.py                        # every robot of recipes/config/robots.yaml
     python recipes/robot_check.py --robot ur10 --configs 2000
+    python recipes/robot_check.py --urdf my_arm.urdf --joints j1,j2,j3 --ee-link tool0 --picture my_arm.png
 
 ``python recipes/report.py --block robots`` renders the files (and draws each cover over its meshes).
 """
@@ -36,7 +37,33 @@ def build(spec: dict, dtype=torch.float32) -> robots.ArmKinematics:
     return robots.URDFArm(**spec, dtype=dtype)
 
 
+def srdf_disabled(path: str) -> dict[frozenset, str]:
+    """MoveIt's allowed-collision pairs of an SRDF: ``{frozenset((link1, link2)): reason}``, reasons lower-case."""
+    import xml.etree.ElementTree as ET
+
+    from torchrl_silp.robots.urdf import resolve_urdf_path
+
+    root = ET.parse(resolve_urdf_path(path)).getroot()
+    return {frozenset((e.get("link1"), e.get("link2"))): (e.get("reason") or "").lower()
+            for e in root.iter("disable_collisions")}
+
+
+def moveit_agreement(arm, srdf: str) -> dict:
+    """Our reason for each link pair (or "check") against MoveIt's SRDF's, over the links with collision geometry."""
+    import itertools
+
+    theirs = srdf_disabled(srdf)
+    ours = {frozenset(p): r for r, pairs in arm.self_collision_matrix.dropped.items() for p in pairs}
+    links = list(dict.fromkeys(arm.sphere_link_names))
+    pairs = [frozenset(p) for p in itertools.combinations(links, 2)]
+    same = [p for p in pairs if ours.get(p, "check") == theirs.get(p, "check")]
+    return {"srdf": srdf, "pairs": len(pairs), "same_reason": len(same),
+            "differ": [[*sorted(p), ours.get(p, "check"), theirs.get(p, "check")] for p in pairs if p not in same]}
+
+
 def check_robot(name: str, spec: dict, configs: int, boxes_per_config: int, seed: int) -> dict:
+    spec = dict(spec)
+    srdf = spec.pop("srdf", None)
     started = time.perf_counter()
     arm = build(spec)
     built_s = time.perf_counter() - started
@@ -67,6 +94,7 @@ def check_robot(name: str, spec: dict, configs: int, boxes_per_config: int, seed
             "dropped": {k: [list(p) for p in v] for k, v in acm.dropped.items()} if acm is not None else None,
             "samples": acm.samples if acm is not None else None,
         },
+        "moveit": moveit_agreement(arm, srdf) if srdf else None,
         "fk_max_error_m": fk_error,
         "exact": exact,
         "build_s": built_s,
@@ -78,21 +106,50 @@ def check_robot(name: str, spec: dict, configs: int, boxes_per_config: int, seed
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--robot", action="append", help="a robot of recipes/config/robots.yaml (default: all)")
+    parser.add_argument("--urdf", help="a robot of yours instead: its URDF file (or package:// path)")
+    parser.add_argument("--joints", help="with --urdf: the configuration's joints, comma-separated")
+    parser.add_argument("--ee-link", help="with --urdf: the link the TCP rides on")
+    parser.add_argument("--package-dirs", help="with --urdf: folders holding its packages, comma-separated")
+    parser.add_argument("--picture", help="also draw the robot's cover over its geometry into this PNG")
     parser.add_argument("--configs", type=int, default=20_000, help="configurations of the exact check")
     parser.add_argument("--boxes-per-config", type=int, default=4)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="results/robots")
     args = parser.parse_args(argv)
     specs = OmegaConf.to_container(OmegaConf.load(CONFIG))
+    if args.urdf is not None:
+        if not args.joints or not args.ee_link:
+            parser.error("--urdf needs --joints and --ee-link")
+        spec = dict(urdf_path=args.urdf, joints=args.joints.split(","), ee_link=args.ee_link)
+        if args.package_dirs:
+            spec["package_dirs"] = args.package_dirs.split(",")
+        try:
+            build(spec)
+        except ValueError as error:  # one line naming what to fix, no traceback
+            parser.error(" ".join(str(error).split()))
+        specs = {Path(args.urdf).stem: spec}
+        args.robot = list(specs)
     wanted = args.robot or list(specs)
     unknown = sorted(set(wanted) - set(specs))
     if unknown:
         parser.error(f"--robot: {unknown} not in {CONFIG.name}; one of {', '.join(specs)}")
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if args.urdf is None:
+        out.mkdir(parents=True, exist_ok=True)
     for name in wanted:
         result = check_robot(name, specs[name], args.configs, args.boxes_per_config, args.seed)
-        (out / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
+        if args.urdf is None:
+            (out / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
+        for link in result["links"]:
+            print(f"  {link['link']}: {link['spheres']} spheres, cover / geometry volume {link['ratio']:.2f}")
+        pairs = result["self_pairs"]
+        dropped = ", ".join(f"{len(v)} {k}" for k, v in (pairs["dropped"] or {}).items() if v)
+        print(f"  self pairs: {len(pairs['checked'])} checked" + (f"; dropped: {dropped}" if dropped else ""))
+        if args.picture:
+            from torchrl_silp.viz import save_cover_png
+
+            save_cover_png(build(specs[name]), args.picture)
+            print(f"  picture: {args.picture}")
         e = result["exact"]
         print(f"{name}: {result['spheres']} spheres; box contacts {e['box']['contacts']}, missed {e['box']['missed']}, "
               f"false alarms {e['box']['false_alarm_rate']:.1%}; self contacts {e['self']['contacts']}, missed "

@@ -73,3 +73,40 @@ def test_silp_loss_and_mixed_replay_without_a_task_model(blocks):
     torch.testing.assert_close(replayed["action"], demos["action"])
     assert torch.isfinite(out["loss_bc"]) and float(out["loss_bc"].detach()) > 0
     assert len(buffers.interaction_buffer) == 2 * 200
+
+
+def test_the_urdf_commands_run_as_written(tmp_path):
+    """docs/your_own_task.md's "your robot from its URDF" commands: the check runs (smaller), the training
+    command composes to the UR10 task, and the picture is drawn."""
+    import shlex
+    import subprocess
+    import sys
+
+    from torchrl_silp.recipes.preflight import compose_command_line
+
+    text = (DOCS / "your_own_task.md").read_text()
+    section = text.split("## Your robot from its URDF")[1].split("\n## ")[0]
+    commands = [" ".join(c.replace("\\\n", " ").split()) for c in re.findall(r"```bash\n(.*?)```", section, flags=re.S)]
+    assert len(commands) == 3
+    check = shlex.split(commands[0])
+    assert check[:2] == ["python", "recipes/robot_check.py"]
+    done = subprocess.run([sys.executable, str(DOCS.parent / check[1]), *check[2:], "--configs", "50"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "missed 0" in done.stdout and (tmp_path / "ur10_cover.png").stat().st_size > 10_000
+    train = shlex.split(commands[1])
+    assert train[:2] == ["python", "recipes/sac_silp.py"]
+    cfg = compose_command_line("sac_silp", train[2:])
+    assert cfg.env.name == "urdf_reach" and cfg.env.robot.ee_link == "tool0" and cfg.run_dir.startswith("runs/ur10_robot/")
+    assert list(cfg.env.robot.joints) == ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint"]
+    # the third: urdf_reach.yaml copied into a folder of the user's, filled in
+    template = (DOCS.parent / "recipes" / "config" / "env" / "urdf_reach.yaml").read_text()
+    filled = (template.replace("urdf_path: ???", f"urdf_path: {cfg.env.robot.urdf_path}")
+              .replace("joints: ???", "joints: [shoulder_pan_joint, shoulder_lift_joint, elbow_joint]")
+              .replace("ee_link: ???", "ee_link: tool0"))
+    (tmp_path / "myconfigs" / "env").mkdir(parents=True)
+    (tmp_path / "myconfigs" / "env" / "ur10.yaml").write_text(filled)
+    own = shlex.split(commands[2])
+    assert own[2:] == ["--config-dir", "myconfigs", "env=ur10"]
+    mine = compose_command_line("sac_silp", ["--config-dir", str(tmp_path / "myconfigs"), "env=ur10"])
+    assert mine.env.robot == cfg.env.robot and mine.env.model == cfg.env.model

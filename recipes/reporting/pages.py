@@ -316,6 +316,13 @@ def _robots_block(name: str, block: dict, page: Path, draw: Path | None) -> list
              "the Panda. FK: the largest TCP distance to pytorch-kinematics' on the same URDF, 1,000 "
              "configurations, float64.", ""]
     for r in found:
+        m = r.get("moveit")
+        if m:
+            differ = "; ".join(f"{a}-{b}: ours {o}, MoveIt's {t}" for a, b, o, t in m["differ"]) or "none"
+            lines += [f"{r['robot']}: our reason for each link pair (checked, or dropped as adjacent, never, ...) is "
+                      f"MoveIt's setup assistant's (`{Path(m['srdf']).name}`, shipped with the description) for "
+                      f"{m['same_reason']} of {m['pairs']} pairs; differing: {differ}.", ""]
+    for r in found:
         if not r["links"]:
             continue
         link_rows = [[f"`{x['link']}`", str(x["spheres"]), f"{x['cover_volume'] * 1e3:.2f}",

@@ -294,6 +294,24 @@ def _time_to_095(ctx: Context, row: Row) -> str:
     return f"{hms(float(np.mean(reached)))} {text}" if reached else text
 
 
+def first_reaching(run, level: float) -> dict | None:
+    """The first periodic evaluation (a ``history.json`` point) at ``level`` or more, or None."""
+    return next((p for p in run.history if (p.get("success_rate") or 0.0) >= level), None)
+
+
+def _to_level(level: float) -> Callable[[Context, Row], str]:
+    def cell(ctx: Context, row: Row) -> str:
+        if not row.runs:
+            return "not run"
+        points = [p for p in (first_reaching(r, level) for r in row.runs) if p is not None]
+        text = f"({len(points)}/{len(row.runs)} reached)"
+        if not points:
+            return text
+        time, frames = np.mean([p["train_wall_s"] for p in points]), np.mean([p["frames"] for p in points])
+        return f"{hms(float(time))}, {count(float(frames))} frames {text}"
+    return cell
+
+
 def _plan_time(ctx: Context, row: Row) -> str:
     values = row.values("rollout_time_per_episode_s")
     return mean_std(values, seconds3(values)) if values else "—"
@@ -357,6 +375,9 @@ COLUMNS = {
     "time_to_095": Column("Time to 0.95", "r", _time_to_095,
                           "training time to the first periodic evaluation at 0.95 or more, over the runs that "
                           "reached it"),
+    "to_090": Column("Time, frames to 0.9", "r", _to_level(0.9),
+                     "training time and frames to the first periodic evaluation at 0.9 or more (the validation "
+                     "tasks), over the runs that reached it"),
     "reached": Column("Reached 0.95", "r",
                       lambda ctx, row: f"{len(row.values('time_to_095_s'))} of {len(row.runs)}"),
     "plan_time": Column("Planning time per rollout (s)", "r", _plan_time,

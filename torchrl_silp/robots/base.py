@@ -1,9 +1,9 @@
 """The arm-kinematics interface and the one batched forward-kinematics engine every arm runs on.
 
-:class:`ArmKinematics` reads a URDF once (:mod:`torchrl_silp.robots.urdf`) and
-turns the serial chain from its root to the ``tcp`` frame into flat tables, as
-pytorch-kinematics' ``Chain.__init__`` does, so no Python tree walk runs per
-call:
+:class:`ArmKinematics` reads a URDF once (:mod:`torchrl_silp.robots.urdf`, through
+yourdfpy) and turns the serial chain from its root to the TCP's link, and every link
+hanging off it (held joints), into flat tables, as pytorch-kinematics'
+``Chain.__init__`` does, so no Python tree walk runs per call:
 
 - the effective origin ``E_k`` of every *moving* joint (``(K, 4, 4)``): the
   fixed frames since the previous moving joint and the joint's own origin,

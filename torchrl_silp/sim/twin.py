@@ -84,9 +84,11 @@ class MujocoTwin:
         self.task_model = model
         self.robot = robot
         self.gains = gains
-        box_size = getattr(model, "OBSTACLE_SIZE", None)
-        if box_size is None:
-            raise TypeError("model must define OBSTACLE_SIZE, the box's (x, y, z) size in metres")
+        boxes = getattr(model, "boxes", None)
+        if not boxes or any(b["size_low"] != b["size_high"] or b["size_low"] != boxes[0]["size_low"] for b in boxes):
+            raise TypeError("model must be an ArmReach whose boxes all have one fixed size (the twin's boxes are "
+                            "built once, at that size)")
+        box_size = boxes[0]["size_low"]
         self.box_half = np.asarray(box_size, dtype=float) / 2
         self.num_boxes = int(getattr(model, "num_boxes", 1))
 
