@@ -9,7 +9,7 @@ task distribution, labels them, trains ``CollisionNet`` (512-256-64, as the pape
 and evaluates it on the other 10 %: accuracy, recall, precision, specificity at 0.5 and the
 ROC curve, written to ``<out>/<labeller>.json``; the network to ``<out>/<labeller>.pt``
 (``planner.collision_net=<out>/<labeller>.pt`` makes it the training planner's edge check).
-``python recipes/report.py --block collision_net`` puts the figures in docs/results.md.
+``python recipes/report.py --block collision_net`` puts the figures in docs/results/paper_tables.md.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ def env():
 
 
 def make_actor(kind, env):
-    """The actors of ``recipes/utils.make_actor_critic`` (lazy MLPs, initialized by one forward)."""
+    """The actors of ``recipes/builders.make_actor_critic`` (lazy MLPs, initialized by one forward)."""
     spec = env.action_spec_unbatched
     torch.manual_seed(0)
     if kind == "sac":

@@ -368,7 +368,7 @@ def test_sac_silp_learns_to_reach(tmp_path):
     """End to end on the default config, cut to 40k frames (~6 min here alone): the planner is learning.
 
     Seed 0 of the default config reached 0.86 on the 1000 test tasks at 40k frames
-    (0.75 with the config of docs/results.md sec. 3.3, 0.52 with lambda2 = 1);
+    (0.75 with the reward filter, 0.52 with lambda2 = 1);
     0.35 leaves room for other machines' float rounding.
     """
     run_dir = tmp_path / "run"

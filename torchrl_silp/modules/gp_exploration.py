@@ -363,7 +363,7 @@ class GPGuidedExploration(TensorDictModuleBase):
 
     The GP is plain torch (:func:`gp_posterior`, :func:`fit_gp_hyperparameters`),
     not gpytorch: ``benchmarks/gp_exploration.py`` times both on the work of one
-    recovery (figures in ``docs/results.md``), and plain torch was faster at
+    recovery (it prints both figures), and plain torch was faster at
     these sizes and adds no dependency.
 
     Args:
