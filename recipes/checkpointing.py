@@ -20,6 +20,7 @@ import torch
 
 from torchrl_silp.data import MixedReplay, cut_episodes
 from torchrl_silp.recipes.builders import make_actor_critic, make_loss
+from torchrl_silp.recipes.metrics import new_counters
 from torchrl_silp.recipes.preflight import (  # noqa: F401 - the run-folder checks, re-exported
     RESUME_FIELDS, RESUME_MODES, RESUME_PRESENCE_FIELDS, RESUME_RETIRED_FIELDS, find_checkpoint, check_run_folder,
     checkpoint_exists,
@@ -114,6 +115,13 @@ def training_state(loss, optimizers, averaged, counters, history, assembler, log
     }
 
 
+def checkpoint_run(path: Path, loss, optimizers, averaged, counters, history, assembler, logger, env,
+                   buffers: MixedReplay) -> float:
+    """Save the run's checkpoint (:func:`training_state` and the buffers); returns when, as ``time.monotonic()``."""
+    save_checkpoint(path, training_state(loss, optimizers, averaged, counters, history, assembler, logger, env), buffers)
+    return time.monotonic()
+
+
 def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, assembler, env) -> tuple:
     """Load a checkpoint into the run's objects: ``(counters, history, logger_state)``.
 
@@ -137,10 +145,10 @@ def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, a
         buffers.extend(cut_episodes(leftover))
     if leftover is not None and cfg.silp.demos:
         buffers.demo_buffer.extend(leftover)
-    counters = state["counters"]
+    counters = {**new_counters(), **state["counters"]}  # a counter added since the save starts at its start value
     print(f"resumed from {path} (saved {state.get('saved_at', 'at an unknown time')}): {counters['frames']} frames, "
           f"{counters['updates']} updates, {len(buffers)} transitions in the buffers")
-    return state["counters"], state["history"], state["logger"]
+    return counters, state["history"], state["logger"]
 
 
 def load_checkpoint(path: Path, buffers: MixedReplay) -> dict:

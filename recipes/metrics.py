@@ -1,9 +1,10 @@
-"""What a training run counts, logs and leaves behind.
+"""What a training run counts, shows, logs and leaves behind.
 
-The loop's counters (:func:`new_counters`), the metrics it logs after each collector batch
-(``train/…``, ``eval/…``, ``time/…``: :func:`batch_metrics`, :func:`log_metrics`), and the files a
-sweep and its report read: ``summary.json`` (:func:`summarize`), ``history.json`` and the learning
-curve.
+The loop's counters (:func:`new_counters`, :func:`count_batch`, :func:`add_bc_filter_share`), its
+progress bar (:class:`Progress`), its periodic evaluations (:func:`evaluate_run`), the metrics it logs
+after each collector batch (``train/…``, ``eval/…``, ``time/…``: :func:`batch_metrics`,
+:func:`log_metrics`), and the files a sweep and its report read: ``summary.json``
+(:func:`summarize`), ``history.json`` and the learning curve.
 """
 
 from __future__ import annotations
@@ -14,6 +15,10 @@ import os
 from pathlib import Path
 
 import torch
+import tqdm
+
+from torchrl_silp.eval import evaluate
+from torchrl_silp.recipes.builders import make_observation_transform
 
 
 def new_counters() -> dict:
@@ -24,6 +29,81 @@ def new_counters() -> dict:
             "updates_owed": 0,
             # the BC filter's kept share of demo rows, summed over the updates since the last evaluation point
             "bc_kept_sum": 0.0, "bc_kept_updates": 0}
+
+
+def count_batch(counters: dict, batch) -> int:
+    """Add a collector batch to the counters; returns the episodes it ended."""
+    episodes_done = int(batch["next", "done"].sum())
+    counters["iterations"] += 1
+    counters["frames"] += batch.numel()
+    counters["episodes"] += episodes_done
+    counters["collisions"] += int(batch["next", "collision"].sum())
+    counters["swept_collisions"] += int(batch["next", "swept_collision"].sum())
+    return episodes_done
+
+
+def add_bc_filter_share(counters: dict, losses: list) -> None:
+    """Add the BC filter's kept share of demo rows, over the updates whose batch held demos (Fig. 7)."""
+    if not losses or "bc_filter_fraction" not in losses[0].keys():
+        return
+    with_demos = torch.stack([td["num_demos"] for td in losses]) > 0
+    kept = torch.stack([td["bc_filter_fraction"] for td in losses])[with_demos]
+    counters["bc_kept_sum"] += kept.sum().item()
+    counters["bc_kept_updates"] += kept.numel()
+
+
+class Progress:
+    """The run's progress bar: frames (episodes, with an episode budget), and beside it the phase, the
+    updates, the last validation success and the demonstrations stored (the ETA is tqdm's recent rate)."""
+
+    def __init__(self, cfg, counters: dict, history: list[dict], demos_stored: int):
+        total_episodes = cfg.collector.total_episodes
+        self.counters = counters
+        if total_episodes is None:
+            self.bar = tqdm.tqdm(total=cfg.collector.total_frames, initial=counters["frames"], unit="frame",
+                                 disable=not cfg.progress)
+        else:
+            self.bar = tqdm.tqdm(total=total_episodes, initial=min(counters["episodes"], total_episodes),
+                                 unit="episode", disable=not cfg.progress)
+        warming_up = counters["frames"] < cfg.collector.init_random_frames
+        self.status = {"phase": "random actions" if warming_up else "training"}
+        if history:  # a resumed run shows what its last evaluation showed
+            self.status.update(success=f"{history[-1]['success_rate']:.3f}", demos=demos_stored)
+
+    def show(self, **fields) -> None:
+        self.status.update(fields, updates=f"{self.counters['updates']:,}")
+        self.bar.set_postfix(self.status, refresh=True)
+
+
+def evaluate_run(cfg, model, policies, device, counters: dict, history: list[dict], run_dir: Path,
+                 seed: int | None = None, return_rollout: bool = False):
+    """Evaluate the run's policy on ``cfg.eval.n_tasks`` tasks (``seed``: the validation tasks by default).
+
+    ``policies`` is ``(evaluated, actor, averaged)``: the evaluated policy, and with an averaged actor
+    the online one too (``online_success_rate``). On the validation tasks the result is a point of
+    ``history`` (with the BC filter's kept share since the last point) and of the learning curve, and
+    sets ``time_to_095_s`` the first time it reaches 0.95. Returns the metrics (and the rollout).
+    """
+    evaluated, actor, averaged = policies
+    seed = cfg.eval.seed if seed is None else seed
+    kwargs = dict(n_tasks=cfg.eval.n_tasks, seed=seed, model=model, max_steps=cfg.env.max_steps,
+                  observation_transform=make_observation_transform(cfg, model), device=device)
+    metrics, rollout = evaluate(evaluated, return_rollout=True, **kwargs)
+    if averaged is not None:
+        metrics["online_success_rate"] = evaluate(actor, **kwargs)["success_rate"]
+    if seed != cfg.eval.seed:  # the test tasks' figure: not a point of the validation curve
+        return (metrics, rollout) if return_rollout else metrics
+    point = {"frames": counters["frames"], "episodes": counters["episodes"],
+             "train_wall_s": counters["train_wall_s"], "collisions": counters["collisions"], **metrics}
+    if counters["bc_kept_updates"]:  # the share of demo actions the BC filter kept since the last point (Fig. 7)
+        point["bc_filter_fraction"] = counters["bc_kept_sum"] / counters["bc_kept_updates"]
+    counters["bc_kept_sum"], counters["bc_kept_updates"] = 0.0, 0
+    if not history or history[-1]["frames"] != counters["frames"]:
+        history.append(point)
+    if counters["time_to_095_s"] is None and metrics["success_rate"] >= 0.95:
+        counters["time_to_095_s"] = counters["train_wall_s"]
+    plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
+    return (metrics, rollout) if return_rollout else metrics
 
 
 def log_metrics(logger, metrics: dict, step: int) -> None:

@@ -165,3 +165,33 @@ def _falling_back(compiled, eager, on_failure=None):
         return out
 
     return call
+
+
+def run_updates(n: int, stop, gradient_step, buffers, averaged, actor, counters: dict, state, progress) -> list:
+    """Up to ``n`` gradient updates on batches of ``buffers``, stopping early on a stop request; the updates
+    left go to ``counters["updates_owed"]`` (made first on resume). Each update also steps the averaged actor.
+
+    ``state.compile_left`` counts the updates until the compiled update has settled: the progress bar says
+    "compiling" meanwhile. Returns the updates' loss TensorDicts.
+    """
+    losses = []
+    for i in range(n):
+        if stop.requested:
+            counters["updates_owed"] = n - i
+            break
+        if state.compile_left:
+            progress.show(phase="compiling")
+        losses.append(gradient_step(buffers.sample()))
+        if averaged is not None:
+            averaged.update_parameters(actor)
+        counters["updates"] += 1
+        if state.compile_left:
+            state.compile_left -= 1
+            if not state.compile_left:
+                progress.show(phase="training")
+        elif i % 20 == 0:
+            progress.show(phase="training")
+    else:
+        counters["updates_owed"] = 0
+    progress.show()
+    return losses

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -406,3 +405,40 @@ def test_found_pairs_are_moveits_for_the_xarm7(xarm7):
 
     agreement = moveit_agreement(xarm7, "package://example-robot-data/robots/xarm_description/srdf/xarm7.srdf")
     assert agreement["pairs"] == 28 and agreement["differ"] == []
+
+
+def test_fcl_and_coal_agree_on_the_ur10s_meshes(ur10):
+    # the exact engine of the checks (python-fcl) against a second one (coal), on the same meshes and boxes
+    import coal
+    import fcl
+
+    objects = link_collision_objects(ur10)
+    models = {}
+    for link in objects:
+        meshes = [p.trimesh() for p in ur10.primitives if p.link == link]
+        mesh = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
+        bvh = coal.BVHModelOBBRSS()
+        bvh.beginModel(len(mesh.faces), len(mesh.vertices))
+        bvh.addVertices(np.asarray(mesh.vertices, dtype=np.float64))
+        bvh.addTriangles(np.asarray(mesh.faces, dtype=np.int32))
+        bvh.endModel()
+        models[link] = bvh
+    rng = np.random.default_rng(4)
+    q = _random_q(ur10, 100, seed=4)
+    rot, pos = ur10.frames(q)
+    index = {n: i for i, n in enumerate(ur10.frame_names)}
+    verdicts = []
+    for n in range(100):
+        centre = pos[n, index["forearm_link"]].numpy() + rng.uniform(-0.3, 0.3, 3)
+        size = rng.uniform(0.05, 0.3, 3)
+        for link in objects:
+            r, p = rot[n, index[link]].numpy(), pos[n, index[link]].numpy()
+            objects[link].setTransform(fcl.Transform(r, p))
+            by_fcl = fcl.collide(objects[link], fcl.CollisionObject(fcl.Box(*size), fcl.Transform(centre)),
+                                 fcl.CollisionRequest(), fcl.CollisionResult()) > 0
+            by_coal = coal.collide(models[link], coal.Transform3s(r, p), coal.Box(*size),
+                                   coal.Transform3s(np.eye(3), centre), coal.CollisionRequest(), coal.CollisionResult()) > 0
+            verdicts.append((by_fcl, by_coal))
+    verdicts = np.array(verdicts)
+    assert verdicts[:, 0].sum() > 20
+    assert (verdicts[:, 0] != verdicts[:, 1]).sum() <= 1  # a box grazing a mesh may go either way
