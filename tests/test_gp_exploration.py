@@ -51,10 +51,6 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-@pytest.fixture(scope="module")
-def model():
-    return UR5eReach()
-
 
 # ------------------------------------------------------ closed form (numpy)
 def np_matern52(a, b, ls, s2):

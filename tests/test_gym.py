@@ -17,11 +17,6 @@ from torchrl_silp.envs import ENV_ID, PANDA_ENV_ID, UR5eReachGymEnv
 from torchrl_silp.envs.gym import ReachGymEnv
 
 
-@pytest.fixture(scope="module")
-def model():
-    """An independent task model whose f_s and f_r are the reference."""
-    return UR5eReach()
-
 
 def state_of(obs: np.ndarray) -> TensorDict:
     """The named state behind a flat UR5e observation (joints, TCP, obstacle, goal)."""

@@ -26,10 +26,6 @@ from torchrl_silp.planning import plan_demonstrations
 
 
 
-@pytest.fixture(scope="module")
-def model():
-    return UR5eReach()
-
 
 def constant_net(logit: float) -> CollisionNet:
     """A net that says the same logit everywhere: every weight 0, the output bias ``logit``."""

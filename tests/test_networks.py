@@ -18,10 +18,6 @@ from torchrl_silp.transforms import GoalRelative
 STATE_KEYS = ["joint_position", "achieved_goal", "obstacle", "desired_goal"]
 
 
-@pytest.fixture(scope="module")
-def model():
-    return UR5eReach()
-
 
 @pytest.fixture(scope="module")
 def model64():

@@ -18,7 +18,6 @@ from torchrl.objectives import DDPGLoss
 from torchrl_silp import CollisionHandling, GoalRelative
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, transition_keys
 from torchrl_silp.envs import ReachEnv
-from torchrl_silp.models import UR5eReach
 from torchrl_silp.modules.networks import NextGoalOffsetQ
 from torchrl_silp.objectives import SILPLoss
 from torchrl_silp.planning import plan_demonstrations
@@ -51,10 +50,6 @@ def rollout(env):
     policy = lambda td: td.set("action", torch.rand(NUM_ENVS, 3, generator=gen) * 2 - 1)  # noqa: E731
     return env.rollout(STEPS, policy=policy, break_when_any_done=False)
 
-
-@pytest.fixture(scope="module")
-def model():
-    return UR5eReach()
 
 
 @pytest.fixture(scope="module")
