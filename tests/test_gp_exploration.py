@@ -51,7 +51,6 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-
 # ------------------------------------------------------ closed form (numpy)
 def np_matern52(a, b, ls, s2):
     r = cdist(a, b) / ls

@@ -17,7 +17,6 @@ from torchrl_silp.envs import ENV_ID, PANDA_ENV_ID, UR5eReachGymEnv
 from torchrl_silp.envs.gym import ReachGymEnv
 
 
-
 def state_of(obs: np.ndarray) -> TensorDict:
     """The named state behind a flat UR5e observation (joints, TCP, obstacle, goal)."""
     obs = torch.from_numpy(obs)

@@ -25,8 +25,6 @@ from torchrl_silp.models.learned_collision import (
 from torchrl_silp.planning import plan_demonstrations
 
 
-
-
 def constant_net(logit: float) -> CollisionNet:
     """A net that says the same logit everywhere: every weight 0, the output bias ``logit``."""
     net = CollisionNet(3 + 6, hidden_sizes=(8,))

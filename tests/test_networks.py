@@ -18,7 +18,6 @@ from torchrl_silp.transforms import GoalRelative
 STATE_KEYS = ["joint_position", "achieved_goal", "obstacle", "desired_goal"]
 
 
-
 @pytest.fixture(scope="module")
 def model64():
     return UR5eReach(dtype=torch.float64)

@@ -51,7 +51,6 @@ def rollout(env):
     return env.rollout(STEPS, policy=policy, break_when_any_done=False)
 
 
-
 @pytest.fixture(scope="module")
 def rollouts(model):
     """The same seeded rollout without and with an ObservationNorm in the env."""
