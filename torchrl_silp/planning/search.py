@@ -5,19 +5,14 @@ there is no edge); a batch of queries is three long tensors ``[Q]``: the graph
 (episode) of each query, its start node and its goal node. Results come back
 as :class:`Paths`.
 
-Choice of the exact algorithm (measured with ``benchmarks/planner.py --search``
-on this project's 2-core CPU, torch 2.13, 64 random-policy episodes of 50
-steps, ``d = 0.15``, ~700 queries, ~51 nodes per graph): Floyd-Warshall
-(:func:`all_pairs_distances`, min-plus over ``[E, N, N]`` with ``N``
-in-place ``torch.minimum`` updates) plus the path read-out of
-:func:`shortest_paths` took 6.0 ms (1 thread: 8.5 ms); batched A* with the
-Euclidean TCP heuristic (:func:`astar_paths`) 9.4 ms (1 thread: 13.8 ms),
-Dijkstra (A* without heuristic) 13.9 ms, and ``scipy.sparse.csgraph.dijkstra``
-on the block-diagonal graph 13.4 ms, most of it the conversion to CSR. The
-``N`` Floyd-Warshall steps are two large vectorised ops each, while A* needs
-~10 small ops per expansion and ~35 expansions until the slowest query closes
-its goal; so Floyd-Warshall is the default (``method="exact"``). A* stays
-available and is tested to agree.
+Choice of the exact algorithm: Floyd-Warshall (:func:`all_pairs_distances`,
+min-plus over ``[E, N, N]`` with ``N`` in-place ``torch.minimum`` updates) plus
+the path read-out of :func:`shortest_paths` is the default (``method="exact"``):
+its ``N`` steps are two large vectorised ops each, while batched A* with the
+Euclidean TCP heuristic (:func:`astar_paths`) needs ~10 small ops per expansion
+and tens of expansions until the slowest query closes its goal, and is slower on
+roadmaps of an episode's size (``benchmarks/planner.py --search`` times both,
+with Dijkstra and SciPy's). A* stays available and is tested to agree.
 """
 
 from __future__ import annotations
