@@ -9,7 +9,7 @@ The discs lie in the ring the outer links sweep (0.5 to 0.8 m from the base), an
 turns through two full turns (starts and goals are drawn within one), so the arm can always swing
 round either way: nearly every task can be solved within the 50 steps of an episode (the share a
 search of the whole joint space solves: :func:`solvable`), and few without a detour
-(:func:`straight_path_free`).
+(:func:`torchrl_silp.eval.straight_path_free`, re-exported here).
 
 Train SILP+ on it with the main job, no file of the repository changed (run from the repo root,
 where ``examples`` is importable)::
@@ -33,6 +33,7 @@ import math
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_silp.eval import straight_path_free
 from torchrl_silp.models import TaskModel
 
 __all__ = ["PlanarArmReach", "solvable", "straight_path_free", "task_shares"]
@@ -213,15 +214,6 @@ def solvable(model: PlanarArmReach, tasks: TensorDictBase, max_steps: int = 50) 
                 out[i] = True
                 break
     return out
-
-
-def straight_path_free(model: PlanarArmReach, tasks: TensorDictBase, max_steps: int = 50) -> torch.Tensor:
-    """Which tasks ``[n]`` the straight joint-space path to the goal configuration solves within ``max_steps``
-    steps, its motion checked as a step's is (bool ``[n]``): the tasks that need no detour."""
-    start, goal = tasks.get(model.config_key), tasks.get(model.goal_config_key)
-    steps = torch.ceil((goal - start).abs().amax(-1) / model.action_scale - 1e-6)
-    flags, _ = model.motion_collision_flags(start, goal, tasks.select(*model.scene_keys))
-    return (flags.squeeze(-1) == 0) & (steps <= max_steps)
 
 
 def task_shares(n_tasks: int = 1000, seed: int = 20231101, max_steps: int = 50, n_discs: int = 3) -> dict:

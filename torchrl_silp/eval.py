@@ -14,11 +14,33 @@ from torchrl_silp.models.base import as_model
 from torchrl_silp.transforms import CollisionHandling
 from torchrl_silp.validation import check_positive_int
 
-__all__ = ["evaluate", "episode_outcomes", "DEFAULT_TEST_SEED", "DEFAULT_VALIDATION_SEED"]
+__all__ = ["evaluate", "episode_outcomes", "straight_path_free", "DEFAULT_TEST_SEED", "DEFAULT_VALIDATION_SEED"]
 
 DEFAULT_TEST_SEED = 20231101  # the 1000 test tasks every recipe and baseline reports on
 # tasks to tune and to stop on (same distribution, other draws): the test tasks are read once, for the figure reported
 DEFAULT_VALIDATION_SEED = 31415926
+
+
+@torch.no_grad()
+def straight_path_free(model, tasks: TensorDictBase, max_steps: int = 50) -> torch.Tensor:
+    """Which tasks ``[n]`` the straight joint-space path to the goal configuration solves within ``max_steps``
+    steps of ``model.action_scale``, its motion checked as a step's is (bool ``[n]``): the tasks that need no
+    detour, a measure of how hard a task distribution is.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_silp.models import UR5eReach
+        >>> model = UR5eReach()
+        >>> tasks = model.sample_tasks(200, torch.Generator().manual_seed(0))
+        >>> free = straight_path_free(model, tasks)
+        >>> free.shape, 0 < free.float().mean() < 1
+        (torch.Size([200]), tensor(True))
+    """
+    model = as_model(model)
+    start, goal = tasks.get(model.config_key), tasks.get(model.goal_config_key)
+    steps = torch.ceil((goal - start).abs().amax(-1) / model.action_scale - 1e-6)
+    flags, _ = model.motion_collision_flags(start, goal, tasks.select(*model.scene_keys))
+    return (flags.squeeze(-1) == 0) & (steps <= max_steps)
 
 
 @torch.no_grad()

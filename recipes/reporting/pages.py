@@ -69,7 +69,7 @@ def _runs_block(name: str, block: dict, page: Path, draw: Path | None) -> list[s
     if block.get("about"):
         lines += [block["about"].strip(), ""]
     for ref in block.get("references", []):  # a figure of the task itself, beside the runs
-        value = json.loads(Path(ref["file"]).read_text())[ref["key"]]
+        value = load.get(json.loads(Path(ref["file"]).read_text()), ref["key"])  # a dotted key reads nested entries
         lines += [f"{ref['text']}: {value:.3f} (`{ref['file']}`, made by `{ref['command']}`).", ""]
     if block.get("planning"):
         lines += tables.planning_table(block["planning"])
