@@ -238,14 +238,6 @@ class UR5eReachEnv(TransformedEnv):
         (torch.Size([4, 10, 1]), torch.Size([4, 10, 15]))
     """
 
-    # the task's constants, as this class held them before the task model did
-    ACTION_SCALE = UR5eReach.action_scale
-    WORKSPACE_LOW, WORKSPACE_HIGH = UR5eReach.WORKSPACE_LOW, UR5eReach.WORKSPACE_HIGH
-    OBSTACLE_SIZE = UR5eReach.OBSTACLE_SIZE
-    OBSTACLE_CENTER_LOW, OBSTACLE_CENTER_HIGH = UR5eReach.OBSTACLE_CENTER_LOW, UR5eReach.OBSTACLE_CENTER_HIGH
-    COLLISION_REWARD, SUCCESS_REWARD = UR5eReach.collision_reward, UR5eReach.success_reward
-    TASK_JOINT_LOW, TASK_JOINT_HIGH = UR5eReach.TASK_JOINT_LOW, UR5eReach.TASK_JOINT_HIGH
-
     def __init__(
         self,
         num_envs: int | None = None,
