@@ -54,7 +54,7 @@ import hydra
 from hydra import compose
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_silp.recipes.schema import CONFIG_DIR, config_context
+from torchrl_silp.recipes.schema import CONFIG_DIR, config_context, free_model_keys
 
 RECIPES = Path(__file__).resolve().parent
 _has_ray = importlib.util.find_spec("ray") is not None
@@ -218,7 +218,7 @@ def _check_configs(runs: list[Run]) -> None:
                 raise ValueError(f"method {run.method}: recipe {run.recipe}'s config recipes/config/{run.config}.yaml "
                                  "does not exist")
             try:
-                compose(run.config, overrides=list(run.overrides))
+                compose(run.config, overrides=free_model_keys(run.overrides))
             except Exception as exc:  # hydra's override and config errors
                 raise ValueError(f"method {run.method}: the overrides {list(run.overrides)} do not compose with "
                                  f"recipes/config/{run.config}.yaml: {exc}") from exc
@@ -311,7 +311,7 @@ def run_one(run: Run, after_result: dict | None = None, last_in_process: bool = 
         print(f"==== sweep: {run.name} started {started}; overrides: {' '.join(run.overrides)}")
         try:
             with config_context():
-                cfg = compose(run.config, overrides=list(run.overrides))
+                cfg = compose(run.config, overrides=free_model_keys(run.overrides))
             _record(run, attempt)
             function = _load_function(run.function)
             summary = function(cfg)

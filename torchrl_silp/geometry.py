@@ -29,6 +29,12 @@ class CollisionReason:
     WORKSPACE = 8
 
     @classmethod
+    def pack(cls, obstacle: torch.Tensor, table: torch.Tensor, self_: torch.Tensor, workspace: torch.Tensor) -> torch.Tensor:
+        """The uint8 flags of four bool tensors of one shape (a collision with a box, the table, itself, the workspace)."""
+        return (obstacle.to(torch.uint8) * cls.OBSTACLE + table.to(torch.uint8) * cls.TABLE
+                + self_.to(torch.uint8) * cls.SELF + workspace.to(torch.uint8) * cls.WORKSPACE)
+
+    @classmethod
     def names(cls, flags: int) -> list[str]:
         return [n.lower() for n in ("OBSTACLE", "TABLE", "SELF", "WORKSPACE") if flags & getattr(cls, n)]
 

@@ -326,12 +326,7 @@ class ArmReach(TaskModel):
         hit_self = self.robot.self_collision(centres, m.get("self", 0.0))
         w = m.get("workspace", 0.0)
         out_ws = ~in_box(tcp, self.workspace_low + w, self.workspace_high - w)
-        flags = (
-            hit_obstacle.to(torch.uint8) * CollisionReason.OBSTACLE
-            + hit_table.to(torch.uint8) * CollisionReason.TABLE
-            + hit_self.to(torch.uint8) * CollisionReason.SELF
-            + out_ws.to(torch.uint8) * CollisionReason.WORKSPACE
-        )
+        flags = CollisionReason.pack(hit_obstacle, hit_table, hit_self, out_ws)
         return flags.reshape(*batch, 1), tcp.reshape(*batch, 3)
 
     def clearance(self, config, scene):

@@ -205,12 +205,7 @@ class UR5eReach(ArmReach):
         hit_self = (d2 < reach2).flatten(-2).any(-1)
         tcp = points[:, :, s].T.contiguous()
         out_ws = ~in_box(tcp, self.workspace_low + m_workspace, self.workspace_high - m_workspace)
-        flags = (
-            hit_obstacle.to(torch.uint8) * CollisionReason.OBSTACLE
-            + hit_table.to(torch.uint8) * CollisionReason.TABLE
-            + hit_self.to(torch.uint8) * CollisionReason.SELF
-            + out_ws.to(torch.uint8) * CollisionReason.WORKSPACE
-        )
+        flags = CollisionReason.pack(hit_obstacle, hit_table, hit_self, out_ws)
         return flags, tcp
 
     def clearance(self, config, scene):
