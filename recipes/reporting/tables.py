@@ -20,6 +20,7 @@ import dataclasses
 import functools
 import math
 import os
+import re
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -633,6 +634,20 @@ def _grouped(rows: list[Row], key: str) -> str | None:
     return ", ".join(f"{v} ({', '.join(ids)})" for v, ids in groups.items())
 
 
+def as_typed_in_checkout(command: str) -> str:
+    """A recorded sweep command as a reader types it at a checkout's root.
+
+    A sweep may have been started from another folder (a frozen copy of the repository, so
+    that edits to the checkout cannot reach runs in flight) with an absolute ``results_dir``:
+    the script becomes ``recipes/sweep.py`` and ``results_dir`` its path under ``results/``.
+
+        >>> as_typed_in_checkout("python ../work/copy/recipes/sweep.py -c x results_dir=/home/u/repo/results/robots")
+        'python recipes/sweep.py -c x results_dir=results/robots'
+    """
+    command = re.sub(r"^python \S*recipes/sweep\.py", "python recipes/sweep.py", command)
+    return re.sub(r"results_dir=\S*?/(results/\S+)", r"results_dir=\1", command)
+
+
 def _machine(run: Run) -> str:
     sweep = run.sweep
     threads = get(run.config, "threads")
@@ -664,7 +679,7 @@ def provenance(ctx: Context, name: str) -> list[str]:
             machines.setdefault(_machine(run), {}).setdefault(row.id, []).append(run.seed)
     for text, ids in machines.items():
         lines += [f"Machine: {text}: " + ", ".join(f"{i} ({seeds_text(s)})" for i, s in ids.items()) + ".", ""]
-    commands = sorted({r.sweep["sweep_command"] for row in rows for r in row.runs
+    commands = sorted({as_typed_in_checkout(r.sweep["sweep_command"]) for row in rows for r in row.runs
                        if r.sweep and r.sweep.get("sweep_command")})
     if commands:
         lines += ["Made by: " + "; ".join(f"`{c}`" for c in commands) + ".", ""]
