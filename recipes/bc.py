@@ -58,7 +58,8 @@ from torchrl_silp.recipes import schema
 from torchrl_silp.recipes.builders import (
     make_actor_critic, make_env, make_model, make_observation_transform, observation_keys,
 )
-from torchrl_silp.recipes.checkpointing import checkpoint_exists, load_trained_networks
+from torchrl_silp.recipes.checkpointing import load_trained_networks
+from torchrl_silp.recipes.preflight import checkpoint_exists
 from torchrl_silp.recipes.metrics import write_results
 from torchrl_silp.recipes.start import start_run
 

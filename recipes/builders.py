@@ -35,10 +35,7 @@ from torchrl_silp.models import TaskModel, make_model as _make_model
 from torchrl_silp.models.check import TaskModelError, ensure_checked
 from torchrl_silp.models.learned_collision import load_collision_net, with_learned_edges
 from torchrl_silp.modules import GPGuidedExploration, NextGoalOffsetQ
-from torchrl_silp.objectives import DEMO_ROWS
-from torchrl_silp.recipes.preflight import ConfigError
-
-EXPLORATION_MODES = ("gp", "random", "none")
+from torchrl_silp.recipes.schema import ConfigError
 
 
 # ---------------------------------------------------------------- environment
@@ -165,8 +162,6 @@ def make_actor_critic(cfg, model, env, device):
 
 def make_exploration(cfg, model, device) -> GPGuidedExploration | None:
     """The collision-recovery module of ``exploration.mode`` (its state primer goes into the env), or None."""
-    if cfg.exploration.mode not in EXPLORATION_MODES:
-        raise ValueError(f"exploration.mode must be one of {EXPLORATION_MODES}, got {cfg.exploration.mode!r}")
     if cfg.exploration.mode == "none":
         return None
     return GPGuidedExploration(
@@ -240,8 +235,6 @@ def make_buffers(cfg, model, device) -> MixedReplay:
 
 
 # ---------------------------------------------------------------------- loss
-DEMO_ROWS_CHOICES = (*DEMO_ROWS, "auto")
-
 
 def demo_rows_of(cfg) -> str:
     """``cfg.silp.demo_rows`` for :class:`SILPLoss`, ``auto`` resolved to the faster way for the run.
@@ -253,8 +246,6 @@ def demo_rows_of(cfg) -> str:
     row makes a masked update slower, and an eager update has no graph to break.
     """
     rows = cfg.silp.demo_rows
-    if rows not in DEMO_ROWS_CHOICES:
-        raise ValueError(f"silp.demo_rows must be one of {DEMO_ROWS_CHOICES}, got {rows!r}")
     if rows != "auto":
         return rows
     comp = cfg.get("compile") or {}

@@ -3,7 +3,7 @@
 A checkpoint is a directory (``<run_dir>/checkpoint``) holding ``state.pt`` (networks, optimisers,
 counters, RNG states) and the buffers, written atomically. A resume is refused when the run's
 config differs from the checkpointed one in a field that changes the networks' or buffers' shape
-or meaning (:data:`RESUME_FIELDS`). :class:`StopRequest` turns SIGTERM / SIGINT into a checkpoint
+or meaning (:data:`~torchrl_silp.recipes.preflight.RESUME_FIELDS`). :class:`StopRequest` turns SIGTERM / SIGINT into a checkpoint
 and a stop.
 """
 
@@ -21,10 +21,7 @@ import torch
 from torchrl_silp.data import MixedReplay, cut_episodes
 from torchrl_silp.recipes.builders import make_actor_critic, make_loss
 from torchrl_silp.recipes.metrics import new_counters
-from torchrl_silp.recipes.preflight import (  # noqa: F401 - the run-folder checks, re-exported
-    RESUME_FIELDS, RESUME_MODES, RESUME_PRESENCE_FIELDS, RESUME_RETIRED_FIELDS, find_checkpoint, check_run_folder,
-    checkpoint_exists,
-)
+from torchrl_silp.recipes.preflight import check_run_folder, find_checkpoint
 
 
 

@@ -37,12 +37,12 @@ from torchrl_silp.recipes.builders import (
     make_actor_critic, make_buffers, make_collector, make_env, make_exploration, make_loss, make_model,
     make_optimizers, make_policy,
 )
-from torchrl_silp.recipes.checkpointing import StopRequest, checkpoint_exists, checkpoint_run, restore
+from torchrl_silp.recipes.checkpointing import StopRequest, checkpoint_run, restore
 from torchrl_silp.recipes.metrics import (
     Progress, add_bc_filter_share, batch_metrics, count_batch, evaluate_run, log_metrics, new_counters,
     plot_learning_curve, summarize, truncate_logs, write_results,
 )
-from torchrl_silp.recipes.preflight import check_config
+from torchrl_silp.recipes.preflight import checkpoint_exists
 from torchrl_silp.recipes.start import start_run, write_run_config
 from torchrl_silp.recipes.update import compile_update, make_gradient_step, run_updates
 from torchrl_silp.viz import save_rollout_png
@@ -63,12 +63,12 @@ class LoopState:
 def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
     """Train, evaluate on the fixed test tasks, checkpoint, report. Returns the summary dict.
 
-    Every value of ``cfg`` and what it asks of its ``run_dir`` are checked before anything is written
-    (:func:`~torchrl_silp.recipes.preflight.check_config`, ``start_run``). ``resume_command``: what a
-    stop prints to continue the run (the script's entry point passes its command line).
+    ``cfg``'s values are checked by the script's entry point (:func:`~torchrl_silp.recipes.preflight.main`)
+    or the sweep before it calls this; what it asks of its ``run_dir`` and what only the built objects can
+    check are checked here, before anything is written. ``resume_command``: what a stop prints to continue
+    the run (the script's entry point passes its command line).
     """
     # ---- build: everything is made and checked before the run folder is written
-    check_config(cfg)
     total_episodes, her = cfg.collector.total_episodes, cfg.replay_buffer.her
     device, run_dir = start_run(cfg, write_config=False)
     ckpt_dir = run_dir / "checkpoint"

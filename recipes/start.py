@@ -9,7 +9,8 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from torchrl_silp.recipes.preflight import check_device, check_run_folder
+from torchrl_silp.recipes.preflight import check_run_folder
+from torchrl_silp.recipes.schema import check_device
 from torchrl_silp.recipes.update import check_compile
 
 

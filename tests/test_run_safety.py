@@ -16,7 +16,8 @@ import torch
 from omegaconf import OmegaConf
 
 from torchrl_silp.recipes import preflight
-from torchrl_silp.recipes.preflight import ConfigError, check_config, check_run_folder
+from torchrl_silp.recipes.preflight import check_run_folder
+from torchrl_silp.recipes.schema import ConfigError, check_config
 from torchrl_silp.recipes.schema import load_config
 
 RECIPES = Path(__file__).parents[1] / "recipes"
@@ -142,31 +143,32 @@ def test_the_light_checks_refuse_before_importing_torch():
     assert out.stdout.split() == ["2", "False"], out.stderr
 
 
-def test_the_copied_choices_are_the_library_s():
+def test_the_config_check_takes_its_choices_from_the_library():
     from torchrl_silp.data.her import HER_STRATEGIES
     from torchrl_silp.envs import COLLISION_TYPES
+    from torchrl_silp.eval import DEFAULT_TEST_SEED, DEFAULT_VALIDATION_SEED
     from torchrl_silp.modules.gp_exploration import GP_EXPLORATION_MODES
     from torchrl_silp.objectives.silp import BC_FILTERS, DEMO_ROWS
     from torchrl_silp.planning.demos import INSERT_NODES
     from torchrl_silp.planning.search import SEARCH_METHODS
-    from torchrl_silp.recipes.builders import EXPLORATION_MODES
-    from torchrl_silp.recipes.checkpointing import RESUME_FIELDS
-
-    assert set(preflight.HER_STRATEGIES) == set(HER_STRATEGIES)
-    assert set(preflight.COLLISION_TYPES) == set(COLLISION_TYPES)
-    assert set(preflight.EXPLORATION_MODES) == set(EXPLORATION_MODES) >= set(GP_EXPLORATION_MODES)
-    assert set(preflight.BC_FILTERS) == set(BC_FILTERS)
-    assert set(preflight.DEMO_ROWS_CHOICES) == {"auto", *DEMO_ROWS}
-    assert set(preflight.INSERT_NODES) == set(INSERT_NODES)
-    assert set(preflight.SEARCH_METHODS) == set(SEARCH_METHODS)
-    assert RESUME_FIELDS is preflight.RESUME_FIELDS
-
-
-def test_the_schema_s_seeds_are_the_evaluation_s():
-    from torchrl_silp.eval import DEFAULT_TEST_SEED, DEFAULT_VALIDATION_SEED
     from torchrl_silp.recipes import schema
 
+    assert schema.HER_STRATEGIES is HER_STRATEGIES
+    assert schema.COLLISION_TYPES is COLLISION_TYPES
+    assert set(schema.EXPLORATION_MODES) == {*GP_EXPLORATION_MODES, "none"}
+    assert schema.BC_FILTERS is BC_FILTERS
+    assert set(schema.DEMO_ROWS_CHOICES) == {*DEMO_ROWS, "auto"}
+    assert schema.INSERT_NODES is INSERT_NODES
+    assert schema.SEARCH_METHODS is SEARCH_METHODS
     assert (schema.DEFAULT_VALIDATION_SEED, schema.DEFAULT_TEST_SEED) == (DEFAULT_VALIDATION_SEED, DEFAULT_TEST_SEED)
+
+
+def test_the_her_strategies_are_torchrl_s():
+    from torchrl.data.replay_buffers.her import HindsightStrategy
+
+    from torchrl_silp.choices import HER_STRATEGIES
+
+    assert HER_STRATEGIES == tuple(s.value for s in HindsightStrategy)
 
 
 @pytest.mark.parametrize("override,key", [
@@ -176,6 +178,8 @@ def test_the_schema_s_seeds_are_the_evaluation_s():
     ("collector.total_episodes=100", "collector.total_episodes"),  # 100 episodes x 50 steps < 8000 warm-up frames
     ("silp.demos=false", "silp.bc"),  # the BC term with no demonstrations
     ("compile.guards=some", "compile.guards"), ("stop_at_success=0", "stop_at_success"),
+    ("silp.demo_rows=all", "silp.demo_rows"), ("exploration.mode=curious", "exploration.mode"),
+    ("collector.frames_per_batch=101", "collector.frames_per_batch"),  # not a multiple of env.num_envs
 ])
 def test_check_config_names_the_key(override, key):
     with pytest.raises(ConfigError) as error:

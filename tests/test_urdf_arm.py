@@ -350,7 +350,7 @@ def test_the_main_job_trains_on_a_urdf_given_on_the_command_line(tmp_path):
     ("env.robot.colour=red", "env.robot.colour"),
 ])
 def test_wrong_urdf_settings_are_refused_naming_the_key_before_anything_is_written(tiny_config, tmp_path, override, key):
-    from torchrl_silp.recipes.preflight import ConfigError
+    from torchrl_silp.recipes.schema import ConfigError
     from torchrl_silp.recipes.sac_silp import train
 
     cfg = tiny_config("env=urdf_reach", f"env.robot.urdf_path={UR10}", f"env.robot.joints=[{','.join(UR_ARM)}]",
@@ -362,7 +362,7 @@ def test_wrong_urdf_settings_are_refused_naming_the_key_before_anything_is_writt
 
 
 def test_a_file_that_is_not_a_urdf_is_refused(tiny_config, tmp_path):
-    from torchrl_silp.recipes.preflight import ConfigError
+    from torchrl_silp.recipes.schema import ConfigError
     from torchrl_silp.recipes.sac_silp import train
 
     text = tmp_path / "notes.urdf"

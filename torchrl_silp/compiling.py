@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import torch
 
+from torchrl_silp.choices import GUARDS
 from torchrl_silp.validation import check_choice
 
 __all__ = ["GUARDS", "compile_kwargs", "skip_module_and_global_guards"]
-
-GUARDS = ("all", "inputs")
 
 
 def skip_module_and_global_guards(guard_entries) -> list[bool]:
@@ -60,8 +59,10 @@ def compile_kwargs(guards: str = "inputs", mode: str | None = None, *, name: str
     check_choice(guards, GUARDS, name=name)
     if guards == "all":
         return {"mode": mode}
-    from torch._inductor import list_mode_options
+    # torch.compile takes a mode or options, not both, and the guard filter only goes in through options: the
+    # mode goes in as the options it stands for. No public API maps a mode to its options; torch.compile's own
+    # docstring points to this one (tests/test_compiling.py pins the options of two modes).
+    from torch._inductor import list_mode_options  # private: no public equivalent
 
-    # torch.compile takes a mode or options, not both: the mode goes in as the options it stands for
     return {"options": {**list_mode_options(mode or "default"), "guard_filter_fn": skip_module_and_global_guards},
             "isolate_recompiles": True}

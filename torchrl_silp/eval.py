@@ -9,6 +9,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_silp.choices import DEFAULT_TEST_SEED, DEFAULT_VALIDATION_SEED
 from torchrl_silp.envs.reach import ReachEnv
 from torchrl_silp.models.base import as_model
 from torchrl_silp.transforms import CollisionHandling
@@ -16,9 +17,6 @@ from torchrl_silp.validation import check_positive_int
 
 __all__ = ["evaluate", "episode_outcomes", "straight_path_free", "DEFAULT_TEST_SEED", "DEFAULT_VALIDATION_SEED"]
 
-DEFAULT_TEST_SEED = 20231101  # the 1000 test tasks every recipe and baseline reports on
-# tasks to tune and to stop on (same distribution, other draws): the test tasks are read once, for the figure reported
-DEFAULT_VALIDATION_SEED = 31415926
 
 
 @torch.no_grad()

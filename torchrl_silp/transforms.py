@@ -19,7 +19,7 @@ from torchrl_silp.validation import check_choice, check_nonnegative_float
 
 __all__ = ["CollisionHandling", "GoalRelative", "PerceptionNoise", "FlatCatTensors", "COLLISION_TYPES"]
 
-COLLISION_TYPES = (0, 1, 2)
+from torchrl_silp.choices import COLLISION_TYPES
 
 
 class _ModelTransform(Transform):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import HERReplayBuffer, LazyTensorStorage
-from torchrl.data.replay_buffers.her import HindsightStrategy
 
+from torchrl_silp.choices import HER_STRATEGIES
 from torchrl_silp.data.demo_buffer import own_signature
 from torchrl_silp.data.storage import FilledStorageCheckpointer
 from torchrl_silp.models.base import as_model
@@ -14,9 +14,9 @@ from torchrl_silp.validation import check_bool, check_choice, check_positive_int
 
 __all__ = ["GoalRelabelingReplayBuffer", "HER_STRATEGIES"]
 
-HER_STRATEGIES = tuple(s.value for s in HindsightStrategy)
 
 
+@own_signature
 class GoalRelabelingReplayBuffer(HERReplayBuffer):
     """TorchRL's :class:`~torchrl.data.HERReplayBuffer` over a task model's named keys, kept consistent.
 
@@ -120,6 +120,3 @@ class GoalRelabelingReplayBuffer(HERReplayBuffer):
             data.set(("next", "truncated"), truncated)
             data.set(("next", "done"), terminated | truncated)
         return data, info
-
-
-own_signature(GoalRelabelingReplayBuffer)

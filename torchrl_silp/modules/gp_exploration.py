@@ -12,6 +12,7 @@ from torchrl.data import Unbounded
 from torchrl.envs import TensorDictPrimer
 from torchrl.envs.utils import ExplorationType, exploration_type
 
+from torchrl_silp.choices import GP_EXPLORATION_MODES
 from torchrl_silp.models.base import TaskModel
 from torchrl_silp.validation import check_bool, check_choice, check_positive_float, check_positive_int
 
@@ -26,7 +27,6 @@ __all__ = [
     "fit_gp_hyperparameters",
 ]
 
-GP_EXPLORATION_MODES = ("gp", "random")
 
 # the module's per-env state: private root keys of the tensordict (see GPGuidedExploration)
 HISTORY_CONFIG_KEY = "_gp_history_config"

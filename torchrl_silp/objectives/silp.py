@@ -11,13 +11,12 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
+from torchrl_silp.choices import BC_FILTERS, DEMO_ROWS
 from torchrl_silp.models.base import as_model
 from torchrl_silp.validation import check_choice, check_nonnegative_float, check_positive_int, check_probability
 
 __all__ = ["SILPLoss", "BC_FILTERS", "DEMO_ROWS"]
 
-BC_FILTERS = ("reward", "q", "none")
-DEMO_ROWS = ("select", "mask")
 
 _DIAGNOSTICS = ("bc_filter_fraction", "bc_mse", "num_demos")
 

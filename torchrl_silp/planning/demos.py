@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torchrl_silp.choices import INSERT_NODES
 from torchrl_silp.models.base import as_model
 from torchrl_silp.planning.roadmap import ExperienceRoadmap
 from torchrl_silp.planning.search import SEARCH_METHODS, Paths, roadmap_paths
@@ -13,7 +14,6 @@ from torchrl_silp.validation import check_bool, check_choice, check_nonnegative_
 __all__ = ["plan_demonstrations", "paths_to_demonstrations", "demo_start_flags", "check_planner_kwargs"]
 
 
-INSERT_NODES = ("equal", "halving")
 
 
 def _split_counts(m: torch.Tensor) -> torch.Tensor:

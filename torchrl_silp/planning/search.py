@@ -22,6 +22,7 @@ from typing import NamedTuple
 
 import torch
 
+from torchrl_silp.choices import SEARCH_METHODS
 from torchrl_silp.validation import check_choice, check_nonnegative_int, check_positive_int
 
 __all__ = [
@@ -34,7 +35,6 @@ __all__ = [
     "SEARCH_METHODS",
 ]
 
-SEARCH_METHODS = ("exact", "greedy")
 
 
 class Paths(NamedTuple):
