@@ -3,12 +3,11 @@
 :class:`GradientStep` sums the loss's ``loss_*`` terms, steps every optimiser and the target
 update (TorchRL's SOTA recipes' ``update(td)``); :func:`compile_update` compiles it under
 ``cfg.compile`` (``torch.compile`` of the loss, optionally a CUDA graph of the whole step), falling
-back on the eager step when compiling fails; :func:`check_compile` refuses what cannot run.
+back on the eager step, with a line on the console, when compiling or capturing fails;
+:func:`check_compile` refuses what cannot run.
 """
 
 from __future__ import annotations
-
-import warnings
 
 import torch
 
@@ -78,13 +77,15 @@ def compile_update(cfg, gradient_step):
     """``gradient_step`` compiled with ``torch.compile`` when ``cfg.compile.compile`` (TorchRL's SOTA recipes'
     switch), else itself: of a :class:`GradientStep`, its loss's forward (and so, through AOTAutograd, its
     backward); any other callable whole; with :func:`compile_kwargs` (``compile.compile_mode`` and
-    ``compile.guards``). A first call whose compilation fails (e.g. no C++ compiler for inductor's CPU
-    code) warns and runs eagerly from then on.
+    ``compile.guards``). A first call whose compilation fails (a ``RuntimeError``: e.g. no C++ compiler for
+    inductor's CPU code) says so on the console and runs eagerly from then on; any other error is the
+    step's own and propagates.
 
     With ``cfg.compile.cudagraphs`` the whole step (forward, backward, the optimisers' steps and the target
     update) is then captured in a CUDA graph by tensordict's ``CudaGraphModule``, as TorchRL's SOTA recipes
-    do, and replayed on each call after ``cfg.compile.warmup`` warm-up calls; a capture that fails warns
-    and the step runs uncaptured from then on (:func:`check_compile` has refused what cannot work)."""
+    do, and replayed on each call after ``cfg.compile.warmup`` warm-up calls; a capture that fails (a
+    ``RuntimeError``, as CUDA refuses an operation while it captures) says so on the console and the step
+    runs uncaptured from then on (:func:`check_compile` has refused what cannot work)."""
     step = _compile_loss(cfg, gradient_step) if cfg.compile.compile else gradient_step
     if not cfg.compile.get("cudagraphs", False):
         return step
@@ -113,9 +114,10 @@ def _capture_cuda_graph(step, warmup: int):
         try:
             out = graphed(sample)  # one run of the step, then its capture (recorded, not run)
             chosen.append(graphed)
-        except Exception as err:  # noqa: BLE001 - a failed capture ran none of what it recorded
-            warnings.warn(f"compile.cudagraphs: the capture failed ({type(err).__name__}: {str(err)[:300]}); "
-                          "the update runs without a CUDA graph")
+        # CUDA and CudaGraphModule refuse what cannot be captured with RuntimeErrors; a failed capture ran
+        # none of what it recorded
+        except RuntimeError as err:
+            _say_fallback("compile.cudagraphs: the capture failed", err, "the update runs without a CUDA graph")
             chosen.append(step)
             # the batch's update ran before the capture began: not again
             out = done[0] if done else step(sample)
@@ -155,9 +157,10 @@ def _falling_back(compiled, eager, on_failure=None):
         try:
             out = compiled(sample)
             chosen.append(compiled)
-        except Exception as err:  # noqa: BLE001 - any compiler failure falls back on the same function
-            warnings.warn(f"compile.compile: torch.compile failed ({type(err).__name__}: {str(err)[:300]}); "
-                          "the update runs eagerly")
+        # dynamo's and inductor's failures (no C++ compiler, a backend or lowering error) are RuntimeErrors;
+        # any other error is the function's own, which the eager function would raise too
+        except RuntimeError as err:
+            _say_fallback("compile.compile: torch.compile failed", err, "the update runs eagerly")
             chosen.append(eager)
             if on_failure is not None:
                 on_failure()  # whatever the failed call accumulated
@@ -165,6 +168,12 @@ def _falling_back(compiled, eager, on_failure=None):
         return out
 
     return call
+
+
+def _say_fallback(what: str, err: Exception, then: str) -> None:
+    """One console line: what failed, the error's first 300 characters, and how the update runs instead."""
+    message = " ".join(str(err).split())[:300]
+    print(f"{what} ({type(err).__name__}: {message}); {then}", flush=True)
 
 
 def run_updates(n: int, stop, gradient_step, buffers, averaged, actor, counters: dict, state, progress) -> list:

@@ -186,3 +186,59 @@ def test_a_bound_too_small_for_the_motion_check():
     model = TinyBound()
     model.motion_resolution = 0.2
     _refused(model, "lipschitz", "passes through a collision")
+
+
+def _counting_checks(monkeypatch) -> list:
+    from torchrl_silp.models import check
+
+    checked = []
+    real = check.check_task_model
+    monkeypatch.setattr(check, "check_task_model", lambda model: checked.append(model) or real(model))
+    return checked
+
+
+def test_a_model_is_checked_once_until_its_public_state_changes(monkeypatch):
+    from torchrl_silp import ReachEnv
+    from torchrl_silp.data import DemoReplayBuffer
+    from torchrl_silp.models.check import ensure_checked
+
+    checked = _counting_checks(monkeypatch)
+    model = PointReach()
+    ReachEnv(model, num_envs=2)
+    ReachEnv(model, num_envs=3)
+    DemoReplayBuffer(model, capacity=10)
+    ensure_checked(model)
+    assert checked == [model]  # the envs, the buffer and the call share the one check
+    model.success_distance = 0.02
+    ensure_checked(model)
+    ensure_checked(model)
+    assert checked == [model, model]
+    # a broken change is refused, though the model passed before
+    model.config_low = model.config_low.double()
+    with pytest.raises(TaskModelError, match="config_low: must have the model's dtype"):
+        ReachEnv(model, num_envs=2)
+
+
+def test_no_check_is_shared_between_models(monkeypatch):
+    from torchrl_silp.models.check import ensure_checked
+
+    checked = _counting_checks(monkeypatch)
+    first, second = PointReach(), PointReach()
+    ensure_checked(first)
+    ensure_checked(second)  # built alike, but another object: what it passed is its own
+    ensure_checked(first)
+    assert checked == [first, second]
+
+
+def test_a_model_whose_state_cannot_be_summarised_is_checked_every_time(monkeypatch):
+    from torchrl_silp.models.check import ensure_checked
+
+    class Opaque:
+        __slots__ = ()  # no attributes to summarise, and an address in its repr
+
+    checked = _counting_checks(monkeypatch)
+    model = PointReach()
+    model.helper = Opaque()
+    ensure_checked(model)
+    ensure_checked(model)
+    assert checked == [model, model]

@@ -321,9 +321,31 @@ def test_compiled_kernel_follows_margins_and_layouts_at_one_size(model):
     anywhere = model.config_low + torch.rand(64, 3, generator=gen) * (model.config_high - model.config_low)
     strided = torch.cat([anywhere, anywhere], -1)[:, :3]  # rows 6 floats apart: another layout, same values
     calls = [(anywhere, None), (anywhere, model.motion_margin()), (strided, {"obstacle": 0.05}), (anywhere, None)]
-    for q, margin in calls:
-        flags, tcp = compiled.collision_flags(q, tasks.select("obstacle"), margin)
+    for i, (q, margin) in enumerate(calls):
+        # the last call reuses the first one's compilation: it would raise if it compiled anew
+        with torch.compiler.set_stance("fail_on_recompile" if i == len(calls) - 1 else "default"):
+            flags, tcp = compiled.collision_flags(q, tasks.select("obstacle"), margin)
         ref_flags, ref_tcp = model.collision_flags(q, tasks.select("obstacle"), margin)
         assert torch.equal(flags, ref_flags) and bool((flags != 0).any()) and bool((flags == 0).any())
         torch.testing.assert_close(tcp, ref_tcp)
-    assert len(compiled._compiled_signatures) == 3  # the last call reused the first one's compilation
+
+
+def test_compiled_kernel_keeps_compiling_past_dynamo_s_default_limit(model, monkeypatch):
+    """Ten (size, margins) met: ten compilations, where dynamo's default limit of 8 would run the rest eagerly."""
+    graphs = []
+
+    def counting_backend(gm, example_inputs):  # compiles nothing: counts what dynamo hands the backend
+        graphs.append(gm)
+        return gm.forward
+
+    compile_ = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: compile_(fn, **{**kwargs, "backend": counting_backend}))
+    compiled = UR5eReach(model.robot, compile_collision=True)
+    tasks = model.sample_tasks(64, generator=torch.Generator().manual_seed(6))
+    for i in range(10):
+        margin = {"obstacle": 0.01 * i, "self": 0.001 * i}
+        flags, tcp = compiled.collision_flags(tasks["joint_position"], tasks["obstacle"], margin)
+        ref_flags, ref_tcp = model.collision_flags(tasks["joint_position"], tasks["obstacle"], margin)
+        assert torch.equal(flags, ref_flags)
+        torch.testing.assert_close(tcp, ref_tcp)
+    assert len(graphs) == 10

@@ -60,5 +60,13 @@ def test_the_mode_goes_in_as_its_options_and_an_unknown_guards_is_refused():
     assert kwargs["options"].pop("guard_filter_fn") is not None
     assert kwargs == {"options": list_mode_options("reduce-overhead"), "isolate_recompiles": True}
     assert kwargs["options"]["triton.cudagraphs"] is True
+    # the private map from a mode to its options, as torch.compile(mode=...) applies it: nothing for the
+    # default mode, max_autotune for max-autotune, and torch.compile's own refusal of a mode it does not know
+    assert list(compile_kwargs("inputs")["options"]) == ["guard_filter_fn"]
+    assert compile_kwargs("inputs", "max-autotune-no-cudagraphs")["options"]["max_autotune"] is True
+    with pytest.raises(RuntimeError, match="Unrecognized mode=fastest"):
+        torch.compile(torch.nn.Identity(), mode="fastest")
+    with pytest.raises(RuntimeError, match="Unrecognized mode=fastest"):
+        compile_kwargs("inputs", "fastest")
     with pytest.raises(ValueError, match="guards must be one of \\('all', 'inputs'\\), got 'some'"):
         compile_kwargs("some")

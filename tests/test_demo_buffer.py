@@ -246,6 +246,26 @@ def test_checkpoint_of_a_wrapped_circular_buffer(tmp_path):
     assert restored.storage[:10]["x"].tolist() == rb.storage[:10]["x"].tolist() == [20, 21, 22, 99, 14, 15, 16, 17, 18, 19]
 
 
+def test_a_checkpoint_loaded_into_a_filled_buffer_leaves_only_its_own_rows(tmp_path):
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from torchrl_silp.data import FilledStorageCheckpointer
+
+    def buffer():
+        return TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=64, checkpointer=FilledStorageCheckpointer())
+
+    rb = buffer()
+    rb.extend(TensorDict({"x": torch.arange(4.0)}, [4]))
+    rb.dumps(tmp_path)
+    filled = buffer()
+    filled.extend(TensorDict({"x": 100 + torch.arange(9.0)}, [9]))
+    filled.loads(tmp_path)
+    # the length is the checkpoint's, not the 9 rows held before: sampling never reaches the rows beyond it
+    assert len(filled) == 4 and filled.storage[:4]["x"].tolist() == [0, 1, 2, 3]
+    assert set(filled.sample()["x"].tolist()) == {0, 1, 2, 3}
+
+
 def test_checkpoint_written_by_torchrl_still_loads(tmp_path):
     from tensordict import TensorDict
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer

@@ -64,6 +64,19 @@ def _flat(data: TensorDictBase) -> TensorDictBase:
     return data.reshape(-1) if data.batch_dims != 1 else data
 
 
+def own_signature(cls: type) -> type:
+    """Class decorator giving a replay-buffer subclass its ``__init__``'s signature.
+
+    ``inspect.signature`` (and so ``help()`` and IDEs) would otherwise show TorchRL's
+    ``ReplayBuffer.__new__`` (``*args, use_ray_service=...``). A class's ``__signature__`` is the hook
+    ``inspect.signature`` documents for this (PEP 362), so no private state is touched.
+    """
+    init = inspect.signature(cls.__init__)
+    cls.__signature__ = init.replace(parameters=list(init.parameters.values())[1:])
+    return cls
+
+
+@own_signature
 class DemoReplayBuffer(TensorDictReplayBuffer):
     """A replay buffer whose ``extend(episodes)`` plans demonstrations from them.
 
@@ -184,17 +197,6 @@ class DemoReplayBuffer(TensorDictReplayBuffer):
             self.planning_time = stats["planning_time"]
             self.episodes_planned = stats["episodes_planned"]
             self.demos_added = stats["demos_added"]
-
-
-def own_signature(cls: type) -> type:
-    """Give a replay-buffer subclass its ``__init__``'s signature: TorchRL's ``ReplayBuffer.__new__``
-    (``*args, use_ray_service=...``) is what ``inspect.signature`` would show otherwise."""
-    init = inspect.signature(cls.__init__)
-    cls.__signature__ = init.replace(parameters=list(init.parameters.values())[1:])
-    return cls
-
-
-own_signature(DemoReplayBuffer)
 
 
 def _count_episodes(episodes: TensorDictBase) -> int:

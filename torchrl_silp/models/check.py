@@ -22,10 +22,6 @@ from torchrl_silp.models.base import TaskModel
 
 __all__ = ["check_task_model", "TaskModelError", "ensure_checked"]
 
-# the configurations (class and public state, :func:`_fingerprint`) of the models that passed, so that the
-# env, the demo buffer and the recipe check a configuration once between them, however many models they build
-_PASSED: set = set()
-
 
 class TaskModelError(ValueError):
     """A task model breaks a rule of the :class:`~torchrl_silp.models.TaskModel` interface."""
@@ -304,13 +300,14 @@ def _fingerprint(value, seen: frozenset = frozenset(), depth: int = 0):
 
 
 def ensure_checked(model: TaskModel) -> None:
-    """:func:`check_task_model` once per model configuration: what :class:`~torchrl_silp.envs.ReachEnv`,
+    """:func:`check_task_model` once per model and configuration: what :class:`~torchrl_silp.envs.ReachEnv`,
     :class:`~torchrl_silp.data.DemoReplayBuffer` and the recipes call on the model they are given.
 
-    A configuration is the model's class and the content of its public attributes (numbers, strings,
-    tensors by value, the robot's buffers, ...): a second model built with the same arguments is not
-    checked again, a model whose public state changed is. Private attributes (``_name``) are taken to be
-    caches of the public ones. A model whose state cannot be summarised is checked every time.
+    A model that passed keeps the configuration it passed with: its class and the content of its public
+    attributes (numbers, strings, tensors by value, the robot's buffers, ...). It is not checked again
+    while that content stays the same, and is checked again once its public state changes (a copy carries
+    what its original passed with). Private attributes (``_name``) are taken to be caches of the public
+    ones. A model whose state cannot be summarised is checked every time.
 
     Raises:
         TaskModelError: as :func:`check_task_model`.
@@ -318,8 +315,11 @@ def ensure_checked(model: TaskModel) -> None:
     Examples:
         >>> from torchrl_silp.models import UR5eReach
         >>> from torchrl_silp.models.check import ensure_checked
-        >>> ensure_checked(UR5eReach())  # checked
-        >>> ensure_checked(UR5eReach())  # the same configuration: not checked again
+        >>> model = UR5eReach()
+        >>> ensure_checked(model)  # checked
+        >>> ensure_checked(model)  # the same configuration: not checked again
+        >>> model.success_distance = 0.02
+        >>> ensure_checked(model)  # another configuration: checked
     """
     if not isinstance(model, TaskModel):
         raise TypeError(f"model must be a torchrl_silp.models.TaskModel, got {type(model).__name__}")
@@ -327,8 +327,10 @@ def ensure_checked(model: TaskModel) -> None:
         key = (type(model), _fingerprint({k: v for k, v in vars(model).items() if not k.startswith("_")}))
     except _Opaque:
         key = None
-    if key is not None and key in _PASSED:
+    # kept on the model, not in a table of this module: the env, the demo buffer and the recipe share
+    # one model object, and a table would outlive its models and be shared by every run in the process
+    if key is not None and getattr(model, "_checked_configuration", None) == key:
         return
     check_task_model(model)
     if key is not None:
-        _PASSED.add(key)
+        model._checked_configuration = key

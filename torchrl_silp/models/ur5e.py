@@ -101,11 +101,9 @@ class UR5eReach(ArmReach):
         self._kernel = self._collision_kernel
         if compile_collision:
             # inductor vectorises a static-shape kernel better than a dynamic-shape one: batches are
-            # padded to a power of two, one compilation per size met
-            self._kernel = torch.compile(self._collision_kernel_from_trig, dynamic=False)
-        # the (padded size, margins, device, dtype) compiled so far: the recompile limit is raised
-        # only around a call that compiles a new one (patching dynamo's config costs ~20 us a call)
-        self._compiled_signatures: set = set()
+            # padded to a power of two, one compilation per size and margins met, more than dynamo's
+            # default limit of 8 before it runs the kernel eagerly
+            self._kernel = torch.compile(self._collision_kernel_from_trig, dynamic=False, recompile_limit=64)
 
     # ------------------------------------------------------------ kinematics
     @property
@@ -162,13 +160,7 @@ class UR5eReach(ArmReach):
                 q = torch.cat([q, q[:1].expand(size - n, 3)])
                 box = torch.cat([box, box[:1].expand(size - n, 6)])
             cos, sin = self.robot.joint_trig(q)  # outside the compiled code: see ArmKinematics.joint_trig
-            signature = (size, margins, q.device, q.dtype)  # what the compiled kernel specialises on
-            if signature in self._compiled_signatures:
-                flags, tcp = self._kernel(cos, sin, box, *margins)
-            else:
-                with torch._dynamo.config.patch(recompile_limit=64):  # one compilation per power of two
-                    flags, tcp = self._kernel(cos, sin, box, *margins)
-                self._compiled_signatures.add(signature)
+            flags, tcp = self._kernel(cos, sin, box, *margins)
             flags, tcp = flags[:n], tcp[:n]
         else:
             flags, tcp = self._collision_kernel(q, box, *margins)
