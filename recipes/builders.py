@@ -225,12 +225,13 @@ def make_buffers(cfg, model, device) -> MixedReplay:
             model, her_ratio=cfg.replay_buffer.her_ratio, strategy=cfg.replay_buffer.her_strategy,
             capacity=cfg.replay_buffer.size, device=device,
             observation_transform=make_observation_transform(cfg, model),
-            collision_ends_episode=cfg.env.collision_type == 0,
+            collision_ends_episode=cfg.env.collision_type == 0 or cfg.replay_buffer.collision_terminal,
         )
     return MixedReplay(
         demos, interaction, interaction_capacity=cfg.replay_buffer.size,
         demo_fraction=cfg.replay_buffer.demo_fraction if cfg.silp.demos else 0.0,
         batch_size=cfg.optim.batch_size, keys=transition_keys(model, keys), device=device,
+        collision_terminal=cfg.replay_buffer.collision_terminal,
     )
 
 

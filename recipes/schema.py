@@ -76,6 +76,7 @@ class ReplayBufferConfig:
     her: bool = False
     her_ratio: float = 0.8
     her_strategy: str = "future"
+    collision_terminal: bool = False
 
 
 @dataclass
@@ -439,6 +440,8 @@ def check_config(cfg: DictConfig) -> None:
         raise ConfigError("replay_buffer.her", f"must be true or false, got {rb.her!r}")
     _number(cfg, "replay_buffer.her_ratio", 0, 1)
     _choice(cfg, "replay_buffer.her_strategy", HER_STRATEGIES)
+    if not isinstance(rb.collision_terminal, bool):
+        raise ConfigError("replay_buffer.collision_terminal", f"must be true or false, got {rb.collision_terminal!r}")
     _number(cfg, "planner.d", 0, low_open=True)
     _int(cfg, "planner.n_pairs")
     _number(cfg, "planner.step_size", 0, low_open=True, optional=True)

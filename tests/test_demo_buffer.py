@@ -122,6 +122,31 @@ def test_discarded_transitions_are_dropped(env, episodes):
     assert mixed.discarded == int(discard.sum())
 
 
+def test_collision_steps_are_stored_as_terminal_without_ending_the_episode():
+    env = UR5eReachEnv(num_envs=8, seed=0, collision_type=2)
+    gen = torch.Generator().manual_seed(1)
+    policy = lambda td: td.set("action", torch.rand(8, 3, generator=gen) * 2 - 1)  # noqa: E731
+    episodes = env.rollout(50, policy=policy, break_when_any_done=False).reshape(-1)
+    collision = episodes["next", "collision"].clone()
+    terminated, done = episodes["next", "terminated"].clone(), episodes["next", "done"].clone()
+    assert collision.any() and (~collision).any(), "the random rollout should collide, and not always"
+    assert not (terminated & collision).any(), "type 2 puts the arm back: the env's step is not terminal"
+
+    mixed = MixedReplay(DemoReplayBuffer(env.model), interaction_capacity=10_000, collision_terminal=True)
+    mixed.extend(episodes)
+    stored = mixed.interaction_buffer[:]
+    assert torch.equal(stored["next", "terminated"], terminated | collision)  # every row kept (type 2), in order
+    assert torch.equal(stored["next", "done"], done)  # the episode boundaries stay the env's
+    # the caller's data keeps the env's flags: the same episodes plan demonstrations afterwards
+    assert torch.equal(episodes["next", "terminated"], terminated)
+
+    plain = MixedReplay(DemoReplayBuffer(env.model), interaction_capacity=10_000)
+    plain.extend(episodes)
+    assert torch.equal(plain.interaction_buffer[:]["next", "terminated"], terminated)
+    with pytest.raises(KeyError, match="collision"):
+        mixed.extend(episodes.exclude(("next", "collision")))
+
+
 def test_checkpoint_round_trip(env, episodes, tmp_path):
     mixed = filled(env, episodes, n_demo_rows=77, demo_fraction=0.4, batch_size=32)
     mixed.demo_buffer.planning_time = 1.25

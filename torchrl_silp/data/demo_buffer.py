@@ -17,7 +17,7 @@ from torchrl_silp.models.base import as_model
 from torchrl_silp.models.check import ensure_checked
 from torchrl_silp.planning import plan_demonstrations
 from torchrl_silp.planning.demos import check_planner_kwargs
-from torchrl_silp.validation import check_choice, check_positive_int, check_probability
+from torchrl_silp.validation import check_bool, check_choice, check_positive_int, check_probability
 
 __all__ = ["DemoReplayBuffer", "MixedReplay", "TRANSITION_KEYS", "transition_keys"]
 
@@ -241,6 +241,13 @@ class MixedReplay:
     ``("next", "discard")`` (collision type 1 of the env). Demonstrations go into
     the demo buffer directly (``mixed.demo_buffer.extend(episodes)``).
 
+    With ``collision_terminal``, a stored transition whose step collided
+    (``("next", "collision")``) is stored with ``("next", "terminated")`` set: its TD
+    target is its reward alone, not followed by the value of the state the arm was
+    put back to (collision types 1 and 2 restore it), so the collision's value is
+    its penalty wherever the arm stands. Only the stored copy changes: the episode
+    goes on, and ``("next", "done")``, which marks episode boundaries, is kept.
+
     Args:
         demo_buffer: the :class:`DemoReplayBuffer` (any TorchRL replay buffer works).
         interaction_buffer: a TorchRL replay buffer; by default a
@@ -254,6 +261,7 @@ class MixedReplay:
         keys: keys kept in both parts (must be present in both); by default the demo buffer's
             ``keys`` when it has them, else :data:`TRANSITION_KEYS`.
         device: where sampled batches are returned (default: where they are stored).
+        collision_terminal: store collision steps as terminal (see above).
 
     Examples:
         >>> from torchrl.envs import Compose, TransformedEnv
@@ -281,7 +289,9 @@ class MixedReplay:
         batch_size: int | None = None,
         keys: Sequence[NestedKey] | None = None,
         device: torch.device | str | None = None,
+        collision_terminal: bool = False,
     ):
+        check_bool(collision_terminal, name="collision_terminal")
         if keys is None:
             keys = getattr(demo_buffer, "keys", None) or TRANSITION_KEYS
         if isinstance(demo_fraction, str):  # else a number in [0, 1]
@@ -302,6 +312,7 @@ class MixedReplay:
         self.keys = tuple(keys)
         self.device = None if device is None else torch.device(device)
         self.discarded = 0
+        self.collision_terminal = collision_terminal
 
     def extend(self, data: TensorDictBase) -> torch.Tensor:
         """Store interaction transitions (any batch shape); returns their indices."""
@@ -311,7 +322,14 @@ class MixedReplay:
             keep = ~discard.reshape(-1)
             self.discarded += int((~keep).sum())
             data = data[keep]
+        if self.collision_terminal:
+            collision = data.get(("next", "collision"), None)
+            if collision is None:
+                raise KeyError("MixedReplay(collision_terminal=True).extend: the data has no ('next', 'collision')")
+            terminated = data.get(("next", "terminated")) | collision.reshape(data.get(("next", "terminated")).shape)
         data = data.select(*[k for k in self.keys if k != "is_demo"])
+        if self.collision_terminal:
+            data.set(("next", "terminated"), terminated)  # a new tensor: the caller's data keeps its flags
         data.set("is_demo", torch.zeros(*data.batch_size, 1, dtype=torch.bool, device=data.device))
         if data.numel() == 0:
             return torch.empty(0, dtype=torch.long)
