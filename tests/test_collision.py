@@ -349,3 +349,36 @@ def test_compiled_kernel_keeps_compiling_past_dynamo_s_default_limit(model, monk
         assert torch.equal(flags, ref_flags)
         torch.testing.assert_close(tcp, ref_tcp)
     assert len(graphs) == 10
+
+
+def test_a_ur5e_scene_of_several_boxes_is_tested_box_by_box():
+    """Three boxes of sampled sizes: the generic test of every box, which must agree with the fused one-box
+    kernel box by box (each box alone, the others far away) and flag the union of what each box flags."""
+    boxes = [
+        {"size": list(UR5eReach.OBSTACLE_SIZE), "center_low": list(UR5eReach.OBSTACLE_CENTER_LOW),
+         "center_high": list(UR5eReach.OBSTACLE_CENTER_HIGH)},
+        {"size_low": [0.05, 0.05, 0.05], "size_high": [0.15, 0.15, 0.25], "center_low": [0.1, -0.3, 0.0],
+         "center_high": [0.8, 0.8, 0.0], "on_table": True},
+        {"size_low": [0.05, 0.05, 0.05], "size_high": [0.15, 0.15, 0.25], "center_low": [0.1, -0.3, 0.0],
+         "center_high": [0.8, 0.8, 0.0], "on_table": True},
+    ]
+    cluttered, one_box = UR5eReach(boxes=boxes), UR5eReach()
+    gen = torch.Generator().manual_seed(0)
+    tasks = cluttered.sample_tasks(500, gen)
+    scene = tasks["obstacle"]
+    assert scene.shape == (500, 18)
+    sizes = scene[:, 6:].reshape(500, 2, 6)
+    assert (sizes[..., 1::2] - sizes[..., 0::2]).std(0).min() > 0.01  # the extra boxes' sizes vary
+    q = tasks["joint_position"] + 0.6 * torch.randn(500, 3, generator=gen)
+    flags, tcp = cluttered.collision_flags(q, scene)
+    union = torch.zeros_like(flags)
+    for k in range(3):
+        alone, tcp_alone = one_box.collision_flags(q, scene[:, 6 * k: 6 * k + 6])
+        union |= alone
+        assert torch.allclose(tcp, tcp_alone, atol=1e-6)
+    assert torch.equal(flags, union)
+    assert ((flags & CollisionReason.OBSTACLE) != 0).sum() > 50  # the test sees contacts, not only free space
+    # the tasks' starts and goals touch no box
+    for key in ("joint_position", "goal_joint_position"):
+        start_flags, _ = cluttered.collision_flags(tasks[key], scene)
+        assert not (start_flags & CollisionReason.OBSTACLE).any()

@@ -34,6 +34,9 @@ class UR5eReach(ArmReach):
 
     Args:
         robot: a :class:`~torchrl_silp.robots.UR5e` to share; built from the packaged URDF by default.
+        num_boxes, boxes: the scene (see :class:`ArmReach`); by default the paper's one box of fixed
+            size. Any other scene is tested by :class:`ArmReach`'s test of every box, the paper's
+            by a kernel fused for one box (``compile_collision`` applies to it alone).
         success_distance: reach accuracy in metres (paper: 0.05).
         motion_resolution, conservative: the swept check of a motion (see :class:`TaskModel`).
         workspace_exit: ``"collision"`` (a step taking the TCP out of the workspace is a
@@ -72,6 +75,8 @@ class UR5eReach(ArmReach):
         self,
         robot: UR5e | None = None,
         *,
+        num_boxes: int = 1,
+        boxes=None,
         success_distance: float = 0.05,
         motion_resolution: float = 0.01,
         conservative: bool = True,
@@ -91,7 +96,7 @@ class UR5eReach(ArmReach):
         if not isinstance(compile_collision, bool):
             raise TypeError(f"compile_collision must be a bool, got {compile_collision!r}")
         super().__init__(
-            robot, num_boxes=1, success_distance=success_distance, motion_resolution=motion_resolution,
+            robot, num_boxes=num_boxes, boxes=boxes, success_distance=success_distance, motion_resolution=motion_resolution,
             conservative=conservative, device=device, dtype=dtype,
         )
         self.workspace_exit = workspace_exit
@@ -141,6 +146,8 @@ class UR5eReach(ArmReach):
 
     # ------------------------------------------------------------- collisions
     def collision_flags(self, config, scene, margin=None):
+        if self.num_boxes != 1:
+            return super().collision_flags(config, scene, margin)
         _check_tensor("config", config, 3)
         obstacle = scene.get("obstacle") if isinstance(scene, TensorDictBase) else scene
         _check_tensor("obstacle", obstacle, 6)
@@ -201,6 +208,8 @@ class UR5eReach(ArmReach):
         return flags, tcp
 
     def clearance(self, config, scene):
+        if self.num_boxes != 1:
+            return super().clearance(config, scene)
         _check_tensor("config", config, 3)
         obstacle = scene.get("obstacle") if isinstance(scene, TensorDictBase) else scene
         batch = torch.broadcast_shapes(config.shape[:-1], obstacle.shape[:-1])
