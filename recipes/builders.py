@@ -29,7 +29,7 @@ from torchrl.modules import MLP, AdditiveGaussianModule, ProbabilisticActor, Tan
 from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
-from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, SILPLoss
+from torchrl_silp import CollisionHandling, GoalRelative, ReachEnv, RunningObservationNorm, SILPLoss
 from torchrl_silp.data import DemoReplayBuffer, GoalRelabelingReplayBuffer, MixedReplay, transition_keys
 from torchrl_silp.models import TaskModel, make_model as _make_model
 from torchrl_silp.models.check import TaskModelError, ensure_checked
@@ -94,14 +94,43 @@ def _config_key(message: str, robot: dict) -> str:
 
 
 def observation_keys(cfg) -> list[str]:
-    """What the networks read: the flat observation, and the goal offset with ``network.goal_relative``."""
-    return ["observation", "goal_offset"] if cfg.network.goal_relative else ["observation"]
+    """What the networks read: the flat observation (``"observation_normalized"`` with
+    ``network.normalize_observation``), and the goal offset with ``network.goal_relative``."""
+    observation = "observation_normalized" if normalizes_observation(cfg) else "observation"
+    return [observation, "goal_offset"] if cfg.network.goal_relative else [observation]
+
+
+def normalizes_observation(cfg) -> bool:
+    """``network.normalize_observation`` (false in a config saved before the key, or without it, as BC's)."""
+    return bool(cfg.network.get("normalize_observation", False))
+
+
+_NORM_ATTR = "_observation_norm"  # private: the model's check ignores it (models.check.ensure_checked)
+
+
+def observation_norm(cfg, model) -> RunningObservationNorm | None:
+    """The run's :class:`~torchrl_silp.RunningObservationNorm` with ``network.normalize_observation``, else None.
+
+    One per model object, kept on the model (and so on a shallow copy of it, as ``with_learned_edges``
+    makes): the env's transform, :func:`make_observation_transform` (the planner, SILPLoss's look-ahead,
+    hindsight relabelling, evaluation), the update's batch normalisation and the checkpoint all hold
+    the same statistics. The recipe updates them from each collected batch's raw ``"observation"``.
+    """
+    if not normalizes_observation(cfg):
+        return None
+    norm = model.__dict__.get(_NORM_ATTR)
+    if norm is None:
+        norm = RunningObservationNorm().to(model.device)
+        setattr(model, _NORM_ATTR, norm)
+    return norm
 
 
 def make_observation_transform(cfg, model) -> Compose:
-    """The transforms that build the networks' inputs from a named state (the env's, the planner's, the loss's)."""
+    """The transforms that build the networks' inputs from a named state (the env's, the planner's, the loss's);
+    with ``network.normalize_observation``, the run's :func:`observation_norm` last."""
     transforms = [GoalRelative(model)] if cfg.network.goal_relative else []
-    return Compose(*transforms, model.observation_transform())
+    norm = observation_norm(cfg, model)
+    return Compose(*transforms, model.observation_transform(), *([norm] if norm is not None else []))
 
 
 def make_env(cfg, model, device, seed: int, primers=()) -> TransformedEnv:

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from torchrl_silp.data import MixedReplay, cut_episodes
-from torchrl_silp.recipes.builders import make_actor_critic, make_loss
+from torchrl_silp.recipes.builders import make_actor_critic, make_loss, observation_norm
 from torchrl_silp.recipes.metrics import new_counters
 from torchrl_silp.recipes.preflight import check_run_folder, find_checkpoint
 
@@ -100,11 +100,13 @@ class StopRequest:
         raise SystemExit(128 + self.signum)
 
 
-def training_state(loss, optimizers, averaged, counters, history, assembler, logger, env) -> dict:
-    """What a checkpoint holds besides the buffers."""
+def training_state(loss, optimizers, averaged, counters, history, assembler, logger, env, norm=None) -> dict:
+    """What a checkpoint holds besides the buffers (``norm``: the run's
+    :class:`~torchrl_silp.RunningObservationNorm`, whose statistics the networks' inputs depend on)."""
     return {
         "loss": loss.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
         "averaged_actor": averaged.state_dict() if averaged is not None else None,
+        "observation_norm": norm.state_dict() if norm is not None else None,
         "counters": dict(counters), "history": list(history), "assembler": assembler.state_dict(),
         "logger": logger.state_dict() if hasattr(logger, "state_dict") else None,
         "torch_rng": torch.get_rng_state(), "env_rng": env.base_env.rng.get_state(),
@@ -113,14 +115,16 @@ def training_state(loss, optimizers, averaged, counters, history, assembler, log
 
 
 def checkpoint_run(path: Path, loss, optimizers, averaged, counters, history, assembler, logger, env,
-                   buffers: MixedReplay) -> float:
+                   buffers: MixedReplay, norm=None) -> float:
     """Save the run's checkpoint (:func:`training_state` and the buffers); returns when, as ``time.monotonic()``."""
-    save_checkpoint(path, training_state(loss, optimizers, averaged, counters, history, assembler, logger, env), buffers)
+    save_checkpoint(path, training_state(loss, optimizers, averaged, counters, history, assembler, logger, env, norm),
+                    buffers)
     return time.monotonic()
 
 
-def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, assembler, env) -> tuple:
-    """Load a checkpoint into the run's objects: ``(counters, history, logger_state)``.
+def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, assembler, env, norm=None) -> tuple:
+    """Load a checkpoint into the run's objects: ``(counters, history, logger_state)``; ``norm``: the run's
+    :class:`~torchrl_silp.RunningObservationNorm`, which gets the checkpoint's statistics.
 
     The collector starts new episodes: the unfinished ones of the checkpoint are planned (and, for
     hindsight relabelling, stored as truncated episodes) now.
@@ -134,6 +138,8 @@ def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, a
             raise ValueError("eval.actor_average_decay is set but the checkpoint holds no averaged actor: "
                              "resume with the config the run was started with")
         averaged.load_state_dict(state["averaged_actor"])
+    if norm is not None:
+        _load_norm(norm, state)
     assembler.load_state_dict(state["assembler"])
     torch.set_rng_state(state["torch_rng"])
     env.base_env.rng.set_state(state["env_rng"])
@@ -146,6 +152,13 @@ def restore(path: Path, cfg, loss, optimizers, averaged, buffers: MixedReplay, a
     print(f"resumed from {path} (saved {state.get('saved_at', 'at an unknown time')}): {counters['frames']} frames, "
           f"{counters['updates']} updates, {len(buffers)} transitions in the buffers")
     return counters, state["history"], state["logger"]
+
+
+def _load_norm(norm, state: dict) -> None:
+    if state.get("observation_norm") is None:
+        raise ValueError("network.normalize_observation is set but the checkpoint holds no observation "
+                         "statistics: use the config the run was saved with")
+    norm.load_state_dict(state["observation_norm"])
 
 
 def load_checkpoint(path: Path, buffers: MixedReplay) -> dict:
@@ -163,7 +176,9 @@ def load_trained_networks(cfg, model, env, path: Path, device) -> tuple:
 
     ``actor`` holds the parameters the run evaluated: the average of the
     actor's parameters when the run kept one (``eval.actor_average_decay``),
-    else the online actor; ``loss`` holds the online networks (critic included).
+    else the online actor; ``loss`` holds the online networks (critic included). With
+    ``network.normalize_observation`` the model's :func:`~torchrl_silp.recipes.builders.observation_norm` gets
+    the run's statistics, so that ``make_observation_transform(cfg, model)`` builds the actor's inputs as it did.
     """
     found = find_checkpoint(path)
     if found is None:
@@ -172,6 +187,9 @@ def load_trained_networks(cfg, model, env, path: Path, device) -> tuple:
     loss, _ = make_loss(cfg, actor, critic, model, env)
     state = torch.load(found / "state.pt", map_location=device, weights_only=False)
     loss.load_state_dict(state["loss"])
+    norm = observation_norm(cfg, model)
+    if norm is not None:  # what make_observation_transform(cfg, model) builds the actor's inputs with
+        _load_norm(norm, state)
     if state.get("averaged_actor") is not None:
         averaged = {k[len("module."):]: v for k, v in state["averaged_actor"].items() if k.startswith("module.")}
         actor.load_state_dict(averaged)

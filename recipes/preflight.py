@@ -36,6 +36,8 @@ RESUME_FIELDS = ("algorithm", "env.name", "env.model", "env.robot", "env.num_env
                  "source", "source_run_dir")
 # fields whose presence (set or null) must match; their value may change on resume
 RESUME_PRESENCE_FIELDS = ("eval.actor_average_decay",)
+# keys added within a RESUME_FIELDS section since runs were saved: a saved config without one ran with this value
+ADDED_FIELDS = {"network.normalize_observation": False}
 
 
 # ------------------------------------------------------------------ the run folder
@@ -67,6 +69,10 @@ def resume_fields_differ(cfg: DictConfig, saved_path: Path) -> tuple[str, object
     config (``(field, here, there)``), or None."""
     saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
     now = OmegaConf.to_container(cfg, resolve=True)
+    for key, value in ADDED_FIELDS.items():
+        section, name = key.rsplit(".", 1)
+        if isinstance(_dotted(saved, section), dict):
+            _dotted(saved, section).setdefault(name, value)
     for field in (*RESUME_FIELDS, *RESUME_PRESENCE_FIELDS):
         old, new = _dotted(saved, field), _dotted(now, field)
         if field in RESUME_PRESENCE_FIELDS:

@@ -35,7 +35,7 @@ from torchrl_silp.modules import make_averaged_actor
 from torchrl_silp.recipes import schema
 from torchrl_silp.recipes.builders import (
     make_actor_critic, make_buffers, make_collector, make_env, make_exploration, make_loss, make_model,
-    make_optimizers, make_policy,
+    make_optimizers, make_policy, observation_norm,
 )
 from torchrl_silp.recipes.checkpointing import StopRequest, checkpoint_run, restore
 from torchrl_silp.recipes.metrics import (
@@ -75,6 +75,7 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
     model = make_model(cfg, device)
     exploration = make_exploration(cfg, model, device)
     primers = [exploration.make_tensordict_primer()] if exploration is not None else []
+    norm = observation_norm(cfg, model)  # network.normalize_observation: the one instance the run shares
     env = make_env(cfg, model, device, seed=cfg.seed, primers=primers)
     actor, critic = make_actor_critic(cfg, model, env, device)
     loss, updater = make_loss(cfg, actor, critic, model, env)
@@ -91,7 +92,7 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
     # ---- start afresh or restore; the log rows after the checkpoint go (those steps are redone)
     resumed = cfg.resume and checkpoint_exists(ckpt_dir)
     counters, history, logger_state = restore(ckpt_dir, cfg, loss, optimizers, averaged, buffers, assembler,
-                                              env) if resumed else (new_counters(), [], None)
+                                              env, norm) if resumed else (new_counters(), [], None)
     dropped = truncate_logs(run_dir / "logs", counters["frames"])
     if dropped:
         print(f"dropped {dropped} log rows after frame {counters['frames']}: the run redoes those steps")
@@ -102,7 +103,7 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
         if not resumed:
             logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
     save = functools.partial(checkpoint_run, ckpt_dir, loss, optimizers, averaged, counters, history, assembler,
-                             logger, env, buffers)
+                             logger, env, buffers, norm)
     evaluate_now = functools.partial(evaluate_run, cfg, model, policies, device, counters, history, run_dir)
 
     # ---- the collector for the frames left, the update, the progress bar
@@ -121,7 +122,8 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
 
     with StopRequest() as stop:
         update = functools.partial(run_updates, stop=stop, gradient_step=gradient_step, buffers=buffers,
-                                   averaged=averaged, actor=actor, counters=counters, state=state, progress=progress)
+                                   averaged=averaged, actor=actor, counters=counters, state=state, progress=progress,
+                                   norm=norm)
         # ---- the updates of the batch a stop cut short, before any new frame
         if counters["updates_owed"]:
             with timeit("train"):
@@ -133,6 +135,8 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
         for batch in (collector if remaining > 0 and not stop.requested else []):
             # ---- collect: count the batch, store it, plan demonstrations over the episodes it ended
             episodes_done = count_batch(counters, batch)
+            if norm is not None:  # the statistics follow the interaction data, raw, before it is stored
+                norm.update(batch.get("observation"))
             finished = assembler.push(batch) if cfg.silp.demos or her else None
             with timeit("rb - extend"):
                 if not her:

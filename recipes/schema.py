@@ -116,6 +116,9 @@ class NetworkConfig:
     hidden_sizes: list[int] = field(default_factory=lambda: [256, 256])
     goal_relative: bool = True
     next_tcp_feature: bool = True
+    # ours, off by default: the networks read the observation standardised by running statistics of the
+    # collected data, clipped to +-5 (torchrl_silp.RunningObservationNorm, key "observation_normalized")
+    normalize_observation: bool = False
 
 
 @dataclass
@@ -459,6 +462,9 @@ def check_config(cfg: DictConfig) -> None:
     sizes = cfg.network.hidden_sizes
     if not isinstance(sizes, (list, ListConfig)) or not sizes or not all(_is_int(s) and s >= 1 for s in sizes):
         raise ConfigError("network.hidden_sizes", f"must be a non-empty list of positive integers, got {sizes!r}")
+    if not isinstance(cfg.network.normalize_observation, bool):
+        raise ConfigError("network.normalize_observation",
+                          f"must be true or false, got {cfg.network.normalize_observation!r}")
     _int(cfg, "optim.batch_size")
     _number(cfg, "optim.utd_ratio", 0, low_open=True)
     _number(cfg, "optim.lr", 0, low_open=True)

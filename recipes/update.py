@@ -176,9 +176,20 @@ def _say_fallback(what: str, err: Exception, then: str) -> None:
     print(f"{what} ({type(err).__name__}: {message}); {then}", flush=True)
 
 
-def run_updates(n: int, stop, gradient_step, buffers, averaged, actor, counters: dict, state, progress) -> list:
+def normalize_batch(norm, sample):
+    """``sample`` with its normalised observation recomputed by ``norm`` (a
+    :class:`~torchrl_silp.RunningObservationNorm`) at the root and under ``"next"``, with the statistics
+    of now: the buffers hold raw observations, and what they stored of an older normalisation is replaced."""
+    norm(sample)
+    norm(sample.get("next"))
+    return sample
+
+
+def run_updates(n: int, stop, gradient_step, buffers, averaged, actor, counters: dict, state, progress,
+                norm=None) -> list:
     """Up to ``n`` gradient updates on batches of ``buffers``, stopping early on a stop request; the updates
     left go to ``counters["updates_owed"]`` (made first on resume). Each update also steps the averaged actor.
+    ``norm``: the run's :class:`~torchrl_silp.RunningObservationNorm`, applied to each batch (:func:`normalize_batch`).
 
     ``state.compile_left`` counts the updates until the compiled update has settled: the progress bar says
     "compiling" meanwhile. Returns the updates' loss TensorDicts.
@@ -190,7 +201,10 @@ def run_updates(n: int, stop, gradient_step, buffers, averaged, actor, counters:
             break
         if state.compile_left:
             progress.show(phase="compiling")
-        losses.append(gradient_step(buffers.sample()))
+        sample = buffers.sample()
+        if norm is not None:
+            sample = normalize_batch(norm, sample)
+        losses.append(gradient_step(sample))
         if averaged is not None:
             averaged.update_parameters(actor)
         counters["updates"] += 1

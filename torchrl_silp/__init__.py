@@ -27,6 +27,7 @@ _PUBLIC = {
     "CollisionHandling": "torchrl_silp.transforms",
     "GoalRelative": "torchrl_silp.transforms",
     "PerceptionNoise": "torchrl_silp.transforms",
+    "RunningObservationNorm": "torchrl_silp.transforms",
     "CollisionReason": "torchrl_silp.geometry",
     "sphere_box_distance": "torchrl_silp.geometry",
     "ExperienceRoadmap": "torchrl_silp.planning",

@@ -1,5 +1,5 @@
-"""SILP+ as TorchRL transforms: collision handling, the goal-relative input, perception noise, and the
-flat observation of named entries of any trailing shape.
+"""SILP+ as TorchRL transforms: collision handling, the goal-relative input, perception noise, the
+flat observation of named entries of any trailing shape, and a running, clipped observation normaliser.
 
 Each works on any env whose base env holds a :class:`~torchrl_silp.models.TaskModel`
 (``env.base_env.model``) and keeps its state under the model's names, such as
@@ -15,9 +15,10 @@ from tensordict import TensorDictBase
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import CatTensors, Transform
 
-from torchrl_silp.validation import check_choice, check_nonnegative_float
+from torchrl_silp.validation import check_choice, check_nonnegative_float, check_positive_float
 
-__all__ = ["CollisionHandling", "GoalRelative", "PerceptionNoise", "FlatCatTensors", "COLLISION_TYPES"]
+__all__ = ["CollisionHandling", "GoalRelative", "PerceptionNoise", "FlatCatTensors", "RunningObservationNorm",
+           "COLLISION_TYPES"]
 
 from torchrl_silp.choices import COLLISION_TYPES
 
@@ -272,3 +273,127 @@ class FlatCatTensors(CatTensors):
                     del observation_spec[key]
         return observation_spec
 
+
+
+class RunningObservationNorm(Transform):
+    """Observations standardised by running statistics of the data seen so far, then clipped.
+
+    Writes ``((x - mean) / max(std, eps)).clamp(-clip, clip)`` of each ``in_keys`` entry to the
+    matching ``out_keys`` entry. The statistics change only through :meth:`update`, which merges a
+    batch of raw observations into the running count, mean and sum of squared deviations (``m2``);
+    applying the transform reads them and changes nothing. So a replay buffer can store the raw
+    observations and a sampled batch be normalised with the statistics current at sample time
+    (apply the transform to the batch and to its ``"next"``), while in an env the transform
+    normalises every reset and step with the statistics of the moment. Before the first update the
+    mean is 0 and the standard deviation 1 (the output is the clipped input).
+
+    ``count``, ``mean`` and ``m2`` are buffers (in a ``state_dict``, moved by ``.to()``); ``mean`` and
+    ``m2`` take the feature size of the first update (a ``state_dict`` of any size loads). The variance
+    is the population one, ``m2 / count``. One instance may sit in several transform chains (an
+    env's and a planner's :class:`~torchrl.envs.Compose`), which then share its statistics: it reads
+    nothing from its parent, so adding it to another chain only moves its ``parent``.
+
+    Args:
+        in_keys: the raw entries (last dim: the features; the statistics are shared by all in_keys).
+        out_keys: where the normalised entries go.
+        clip: the bound of the normalised values.
+        eps: the floor of the standard deviation.
+        dtype: the buffers' dtype.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> norm = RunningObservationNorm(clip=5.0)
+        >>> x = torch.tensor([[0.0, 10.0], [2.0, 10.0], [4.0, 10.0]])
+        >>> norm.update(x)  # mean (2, 10); std (1.633, 0), the second floored at eps = 0.01
+        >>> norm.mean.tolist(), int(norm.count)
+        ([2.0, 10.0], 3)
+        >>> td = norm(TensorDict({"observation": torch.tensor([[4.0, 10.5]])}, batch_size=[1]))
+        >>> td["observation_normalized"]  # (4 - 2) / 1.633, and (10.5 - 10) / 0.01 clipped at 5
+        tensor([[1.2247, 5.0000]])
+        >>> norm.update(torch.tensor([[6.0, 10.0]]))  # one more row: the statistics of all four
+        >>> norm.mean.tolist(), round(float(norm.var[0]), 4)
+        ([3.0, 10.0], 5.0)
+    """
+
+    def __init__(self, in_keys=("observation",), out_keys=("observation_normalized",), clip: float = 5.0,
+                 eps: float = 1e-2, dtype: torch.dtype = torch.float32):
+        in_keys, out_keys = list(in_keys), list(out_keys)
+        if len(in_keys) != len(out_keys):
+            raise ValueError(f"in_keys and out_keys must have the same length, got {in_keys} and {out_keys}")
+        clip, eps = check_positive_float(clip, name="clip"), check_positive_float(eps, name="eps")
+        super().__init__(in_keys=in_keys, out_keys=out_keys)
+        self.clip, self.eps = clip, eps
+        self.register_buffer("count", torch.zeros((), dtype=dtype))
+        self.register_buffer("mean", torch.zeros(0, dtype=dtype))  # sized by the first update
+        self.register_buffer("m2", torch.zeros(0, dtype=dtype))
+
+    @property
+    def var(self) -> torch.Tensor:
+        """The population variance of the data seen so far (``m2 / count``; ones before any update)."""
+        if not self.mean.numel():
+            return torch.ones_like(self.mean)
+        return self.m2 / self.count.clamp_min(1)
+
+    @property
+    def std(self) -> torch.Tensor:
+        """The standard deviation the transform divides by: ``sqrt(var)``, at least ``eps``."""
+        return self.var.sqrt().clamp_min(self.eps)
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Merge the rows of ``x`` (any leading dims, the features last) into the statistics (Chan et
+        al.'s parallel formula: the batch's own mean and ``m2``, then one weighted merge)."""
+        x = x.detach().reshape(-1, x.shape[-1]).to(self.mean.dtype)
+        n_b = x.shape[0]
+        if n_b == 0:
+            return
+        if not self.mean.numel():
+            self.mean = torch.zeros(x.shape[-1], dtype=x.dtype, device=self.count.device)
+            self.m2 = torch.zeros_like(self.mean)
+        elif self.mean.shape[-1] != x.shape[-1]:
+            raise ValueError(f"{type(self).__name__}.update: {x.shape[-1]} features, the statistics have "
+                             f"{self.mean.shape[-1]}")
+        x = x.to(self.mean.device)
+        mean_b = x.mean(0)
+        m2_b = (x - mean_b).square().sum(0)
+        n_a = self.count.clone()
+        n = n_a + n_b
+        delta = mean_b - self.mean
+        # in place: whatever holds these tensors (a compiled graph, a shared chain) sees the new values
+        self.mean.add_(delta * (n_b / n))
+        self.m2.add_(m2_b + delta.square() * (n_a * n_b / n))
+        self.count.copy_(n)
+
+    def _apply_transform(self, obs: torch.Tensor) -> torch.Tensor:
+        if not self.mean.numel():  # no data yet: mean 0, std 1
+            return obs.clamp(-self.clip, self.clip)
+        mean, std = self.mean.to(obs.dtype), self.std.to(obs.dtype)
+        return ((obs - mean) / std).clamp(-self.clip, self.clip)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        for in_key, out_key in zip(self.in_keys, self.out_keys):
+            spec = observation_spec[in_key]
+            observation_spec[out_key] = Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
+        return observation_spec
+
+    def set_container(self, container) -> None:
+        # in several chains at once (module docstring): the latest container is kept, without
+        # Transform's refusal of a second parent
+        self.reset_parent()
+        super().set_container(container)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # the statistics' size is that of the data they saw: take the saved one before loading
+        for name in ("mean", "m2"):
+            saved = state_dict.get(prefix + name)
+            if saved is not None and saved.shape != getattr(self, name).shape:
+                setattr(self, name, torch.zeros(saved.shape, dtype=self.count.dtype, device=self.count.device))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(in_keys={self.in_keys}, out_keys={self.out_keys}, clip={self.clip}, "
+                f"eps={self.eps}, count={int(self.count)})")
