@@ -238,6 +238,8 @@ def make_buffers(cfg, model, device) -> MixedReplay:
         "goal_node": cfg.planner.goal_node,
         "own_query": cfg.planner.own_query,
         "insert_nodes": cfg.planner.insert_nodes,
+        "sampled_nodes": cfg.planner.sampled_nodes,
+        "sample_spread": cfg.planner.sample_spread,
     }
     keys = observation_keys(cfg)
     if cfg.planner.collision_net is not None:  # the paper's planner: edges checked by the learned model

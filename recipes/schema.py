@@ -90,6 +90,8 @@ class PlannerConfig:
     insert_nodes: str = "equal"
     collision_net: Optional[str] = None
     collision_threshold: float = 0.5
+    sampled_nodes: int = 0
+    sample_spread: Optional[float] = None
 
 
 @dataclass
@@ -447,6 +449,8 @@ def check_config(cfg: DictConfig) -> None:
         raise ConfigError("replay_buffer.collision_terminal", f"must be true or false, got {rb.collision_terminal!r}")
     _number(cfg, "planner.d", 0, low_open=True)
     _int(cfg, "planner.n_pairs")
+    _int(cfg, "planner.sampled_nodes", 0)
+    _number(cfg, "planner.sample_spread", 0, low_open=True, optional=True)
     _number(cfg, "planner.step_size", 0, low_open=True, optional=True)
     _choice(cfg, "planner.method", SEARCH_METHODS)
     _choice(cfg, "planner.insert_nodes", INSERT_NODES)

@@ -576,6 +576,52 @@ def test_goal_node_demonstrations_reach_the_real_goal(model, envs):
         assert demos["next", "success"][hi].item() and demos["next", "terminated"][hi].item()
 
 
+@pytest.mark.parametrize("spread", [None, 0.5])
+def test_sampled_nodes_extend_the_roadmap_with_free_configurations_near_the_experience(model, envs, spread):
+    env = envs[(2, 3)]
+    episodes = rollout(env, 7, 40, "scripted")
+    plain = ExperienceRoadmap(model, episodes, lazy=True, goal_node=True)
+    rm = ExperienceRoadmap(model, episodes, lazy=True, goal_node=True, sampled_nodes=48, sample_spread=spread,
+                           generator=torch.Generator().manual_seed(0))
+    reach = 2 * model.action_scale if spread is None else spread
+    assert rm.num_episodes == plain.num_episodes and (rm.num_nodes > plain.num_nodes).all()
+    for e in range(rm.num_episodes):
+        n, m = int(plain.num_nodes[e]), int(rm.num_nodes[e])
+        visited = n - int(plain.is_goal_node[e].any())
+        # the visited nodes first, as without sampling; the goal node last; the sampled ones between
+        torch.testing.assert_close(rm.config[e, :visited], plain.config[e, :visited])
+        assert torch.equal(rm.is_goal_node[e, :m].nonzero().squeeze(-1), plain.is_goal_node[e, :n].nonzero().squeeze(-1) + m - n)
+        sampled = rm.config[e, visited: visited + m - n]
+        # free in the episode's scene, within the joint limits, within the spread of a visited state or the goal
+        scene = rm.scene[e].expand(sampled.shape[0])
+        assert not model.collides(sampled, scene).any()
+        assert ((sampled >= model.config_low - 1e-6) & (sampled <= model.config_high + 1e-6)).all()
+        anchors = plain.config[e, :n]
+        nearest = (sampled.unsqueeze(1) - anchors.unsqueeze(0)).abs().amax(-1).amin(-1)
+        assert (nearest <= reach + 1e-5).all()
+        torch.testing.assert_close(rm.achieved_goal[e, visited: visited + m - n], model.robot.fk(sampled), atol=1e-5, rtol=0)
+    # more nodes, never fewer paths: every start-to-goal query the plain roadmap solves, the extended one
+    # solves at most as long (its graph holds the plain one's)
+    with_goal = plain.is_goal_node.any(-1).nonzero().squeeze(-1)
+    zeros = torch.zeros_like(with_goal)
+    p0 = roadmap_paths(plain, with_goal, zeros, plain.num_nodes[with_goal] - 1)
+    p1 = roadmap_paths(rm, with_goal, zeros, rm.num_nodes[with_goal] - 1)
+    assert p0.found.any() and (p1.found | ~p0.found).all() and (p1.cost[p0.found] <= p0.cost[p0.found] + 1e-5).all()
+
+
+def test_demonstrations_through_sampled_nodes_replay_in_the_model(model, envs):
+    episodes = rollout(envs[(2, 3)], 3, 40, "scripted")
+    demos = plan_demonstrations(model, episodes, n_pairs=2, goal_node=True, sampled_nodes=48,
+                                generator=torch.Generator().manual_seed(0))
+    plain = plan_demonstrations(model, episodes, n_pairs=2, goal_node=True, generator=torch.Generator().manual_seed(0))
+    assert demos.shape[0] > 0 and not torch.equal(demos["joint_position"][: plain.shape[0]], plain["joint_position"])
+    nxt, reward, collision, success, _ = model.step(demos.select(*STATE_KEYS, "goal_joint_position"), demos["action"])
+    assert not collision.any()
+    torch.testing.assert_close(nxt["joint_position"], demos["next", "joint_position"], atol=1e-5, rtol=0)
+    torch.testing.assert_close(reward, demos["next", "reward"], atol=1e-5, rtol=0)
+    assert torch.equal(success, demos["next", "success"]) and torch.equal(success, demos["next", "terminated"])
+
+
 # ---------------------------------------------------------------- edge checks
 def test_clearance_over_lipschitz_is_a_radius_free_of_collisions(model):
     gen = torch.Generator().manual_seed(0)

@@ -200,7 +200,7 @@ def paths_to_demonstrations(
 
 
 PLANNER_OPTIONS = ("d", "n_pairs", "step_size", "method", "generator", "lazy", "goal_node", "own_query",
-                   "insert_nodes")
+                   "insert_nodes", "sampled_nodes", "sample_spread")
 
 
 def check_planner_kwargs(kwargs: dict) -> None:
@@ -224,6 +224,8 @@ def check_planner_kwargs(kwargs: dict) -> None:
     check_choice(kwargs.get("insert_nodes", "equal"), INSERT_NODES, name="insert_nodes")
     for name in ("lazy", "goal_node", "own_query"):
         check_bool(kwargs.get(name, False), name=name)
+    check_nonnegative_int(kwargs.get("sampled_nodes", 0), name="sampled_nodes")
+    check_positive_float(kwargs.get("sample_spread"), name="sample_spread", unit="radians", optional=True)
 
 
 def plan_demonstrations(
@@ -240,6 +242,8 @@ def plan_demonstrations(
     own_query: bool = True,
     insert_nodes: str = "equal",
     observation_transform=None,
+    sampled_nodes: int = 0,
+    sample_spread: float | None = None,
 ) -> TensorDict:
     """Demonstrations planned on the experience of a batch of episodes (SILP+).
 
@@ -271,6 +275,9 @@ def plan_demonstrations(
             equal steps) or ``"halving"`` (the paper's Alg. 2); see :func:`paths_to_demonstrations`.
         observation_transform: builds the networks' inputs from a named state (see
             :func:`paths_to_demonstrations`).
+        sampled_nodes, sample_spread: free configurations drawn around each episode's
+            visited states, made roadmap nodes (ours; see
+            :class:`~torchrl_silp.planning.roadmap.ExperienceRoadmap`).
 
     Returns:
         TensorDict ``[N]`` of transitions with the keys and dtypes of an env
@@ -295,7 +302,8 @@ def plan_demonstrations(
     check_nonnegative_int(n_pairs, name="n_pairs")
     check_choice(insert_nodes, INSERT_NODES, name="insert_nodes")
     model = as_model(model)
-    roadmap = ExperienceRoadmap(model, episodes, d=d, step_size=step_size, lazy=lazy, goal_node=goal_node)
+    roadmap = ExperienceRoadmap(model, episodes, d=d, step_size=step_size, lazy=lazy, goal_node=goal_node,
+                                sampled_nodes=sampled_nodes, sample_spread=sample_spread, generator=generator)
     episode, start, goal = roadmap.queries(n_pairs, generator, own_query=own_query)
     paths = roadmap_paths(roadmap, episode, start, goal, method=method)
     return paths_to_demonstrations(model, roadmap, episode, paths, observation_transform, insert_nodes)

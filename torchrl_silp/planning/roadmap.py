@@ -106,6 +106,20 @@ class ExperienceRoadmap:
             its goal yields a demonstration that reaches the goal itself rather
             than the visited state nearest it. An extension of the paper, whose
             nodes are visited states only.
+        sampled_nodes: also make up to this many collision-free configurations per
+            episode nodes (ours; the paper's nodes are visited states only), so that a
+            path may leave the states the policy visited: each is a visited node of the
+            episode (or, with ``goal_node``, its goal configuration), drawn uniformly,
+            moved by a uniform offset of at most
+            ``sample_spread`` per joint and clipped to the joint limits, and kept
+            when it is free in the episode's scene (:meth:`~torchrl_silp.models.TaskModel.collision_flags`);
+            the drawn ones that collide are dropped. Their edges are checked as every
+            other edge.
+        sample_spread: the largest offset of a sampled node per joint, in the
+            configuration's units (rad); ``None``: two actions' reach
+            (``2 * model.action_scale``). A spread as wide as the joint ranges draws
+            nodes all over the joint box, as a PRM's.
+        generator: torch generator of the sampled nodes.
 
     Attributes:
         config: ``[E, N, D]`` configurations of the nodes (zero padding).
@@ -141,6 +155,9 @@ class ExperienceRoadmap:
         step_size: float | None = None,
         lazy: bool = False,
         goal_node: bool = False,
+        sampled_nodes: int = 0,
+        sample_spread: float | None = None,
+        generator: torch.Generator | None = None,
     ):
         model = as_model(model)
         self.model = model
@@ -149,6 +166,8 @@ class ExperienceRoadmap:
             step_size, name="step_size", unit="radians")
         check_bool(lazy, name="lazy")
         check_bool(goal_node, name="goal_node")
+        check_nonnegative_int(sampled_nodes, name="sampled_nodes")
+        check_positive_float(sample_spread, name="sample_spread", unit="radians", optional=True)
         starts, episode = split_episodes(episodes)
         cfg_key, goal_key = model.config_key, model.achieved_goal_key
         needed = [*model.state_keys, ("next", cfg_key), ("next", goal_key), ("next", "collision")]
@@ -189,12 +208,25 @@ class ExperienceRoadmap:
 
         # a last column flags goal nodes through the padding and the de-duplication
         rows_ = torch.cat([node_config, node_goal.to(node_config.dtype), torch.zeros_like(node_config[:, :1])], dim=-1)
+        goal_rows = goal_episode = None
         if goal_node:
             goal_q = flat.get(model.goal_config_key)[first_step].to(rows_.dtype)
             goal_rows = torch.cat([goal_q, self.goal.to(rows_.dtype), torch.ones_like(goal_q[:, :1])], dim=-1)
+            goal_episode = torch.arange(E, device=device)
+        if sampled_nodes:
+            # drawn around the visited states and, with goal nodes, the goal configuration too
+            around = node_config if goal_rows is None else torch.cat([node_config, goal_rows[:, :D].to(node_config.dtype)])
+            around_episode = node_episode if goal_rows is None else torch.cat([node_episode, goal_episode])
+            sampled, sampled_episode = self._sample_nodes(around, around_episode, E, sampled_nodes, sample_spread,
+                                                          generator)
+            rows_ = torch.cat([rows_, sampled.to(rows_.dtype)])
+            node_episode = torch.cat([node_episode, sampled_episode])
+        if goal_rows is not None:
             rows_ = torch.cat([rows_, goal_rows])
-            node_episode = torch.cat([node_episode, torch.arange(E, device=device)])
-            # stable: visiting order kept, each goal node last in its episode
+            node_episode = torch.cat([node_episode, goal_episode])
+        appended = sampled_nodes > 0 or goal_node
+        if appended:
+            # stable: visiting order kept, then the sampled nodes, each goal node last in its episode
             node_episode, order = torch.sort(node_episode, stable=True)
             rows_ = rows_[order]
         qt, mask = self._pad(rows_, node_episode, E)
@@ -223,6 +255,27 @@ class ExperienceRoadmap:
         self._optimistic = torch.where(self.candidates, self.distance, math.inf)
         if not lazy:
             self.check_edges()
+
+    def _sample_nodes(self, node_config, node_episode, E: int, k: int, spread: float | None, generator):
+        # k draws per episode around its visited nodes (or in the joint box); the free ones as node rows
+        model, device = self.model, node_config.device
+        gdev = generator.device if generator is not None else device
+        low, high = model.config_low.to(device, node_config.dtype), model.config_high.to(device, node_config.dtype)
+        episode = torch.arange(E, device=device).repeat_interleave(k)
+        u = torch.rand(E * k, model.config_dim, generator=generator, device=gdev, dtype=node_config.dtype).to(device)
+        spread = 2 * float(model.action_scale) if spread is None else spread
+        order = torch.argsort(node_episode, stable=True)
+        counts = torch.bincount(node_episode, minlength=E)  # every episode has its first state
+        first = torch.cumsum(counts, 0) - counts
+        pick = torch.rand(E * k, generator=generator, device=gdev, dtype=node_config.dtype).to(device)
+        offset = (pick * counts[episode]).long().clamp(max=(counts[episode] - 1).clamp(min=0))
+        base = node_config[order][first[episode] + offset]
+        q = torch.minimum(torch.maximum(base + spread * (2 * u - 1), low), high)
+        flags, _ = model.collision_flags(q, self.scene[episode])
+        free = (flags.squeeze(-1) == 0).nonzero().squeeze(-1)
+        q, episode = q[free], episode[free]
+        goal = model.achieved_goal(q).to(q.dtype)
+        return torch.cat([q, goal, torch.zeros_like(q[:, :1])], dim=-1), episode
 
     # names of the UR5e days: the configuration and the TCP (the achieved goal)
     @property
