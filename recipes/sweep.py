@@ -77,6 +77,7 @@ class Run:
     run_dir: Path
     after: str | None = None
     context: tuple[tuple[str, object], ...] = ()  # what the sweep records in sweep.json
+    check: str | None = None  # "<module>.<function>" that checks the composed config (raises ConfigError)
 
     @property
     def name(self) -> str:
@@ -170,7 +171,7 @@ def plan(cfg: DictConfig, check_configs: bool = True) -> list[Run]:
         if gpus > 0:
             overrides.append("++device=cuda")
         return Run(method, seed, entry.recipe, recipe.config, recipe.function, tuple(overrides), run_dir,
-                   entry.get("after", None))
+                   entry.get("after", None), check=recipe.get("check", None))
 
     # the methods a selected one waits for come first; one not selected must have finished already
     ordered: list[str] = []
@@ -312,6 +313,8 @@ def run_one(run: Run, after_result: dict | None = None, last_in_process: bool = 
         try:
             with config_context():
                 cfg = compose(run.config, overrides=free_model_keys(run.overrides))
+            if run.check is not None:  # what the script's command line checks first, before any file of the run
+                _load_function(run.check)(cfg)
             _record(run, attempt)
             function = _load_function(run.function)
             summary = function(cfg)
