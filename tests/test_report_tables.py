@@ -96,8 +96,8 @@ def test_rows_not_run_fewer_seeds_and_orderings_that_cannot_be_read(tmp_path):
     assert rows["sac_silp_plus"][1:] == ["not run", "0"] and rows["sac"][1] == "0.600 (0.100)"
     assert "- `sac_silp_plus`: not run" in text and "- `sac`: 2 of 3 seeds (seeds 0, 1)" in text
     assert "- not run: a (missing: `sac_silp_plus`)" in text
-    assert "- holds: b (`sac_demon` 0.900 > `sac` 0.600)" in text
-    assert "- does not hold: c (`sac` 0.600 ≥ `sac_demon` 0.900)" in text
+    assert "- holds: b (`sac_demon` 0.900 > `sac` 0.600 (+0.300))" in text
+    assert "- does not hold: c (`sac` 0.600 ≥ `sac_demon` 0.900 (-0.300))" in text
 
 
 def test_a_staged_study_renders_its_rows_as_not_run_until_its_first_run_and_any_other_study_refuses(tmp_path):
@@ -271,7 +271,11 @@ def test_an_ordering_of_spreads_reads_each_rows_std_over_seeds(tmp_path):
                      {"text": "HER on top", "all": [{"order": ["ddpg_her", "ddpg"], "strict": True}]},
                      {"text": "HER at 0.6 or more", "all": [{"order": ["ddpg_her", 0.6]}]}])
     assert f"- holds: HER spreads most (`ddpg_her` (std) {wide.std():.3f} > `ddpg` (std) {narrow.std():.3f})" in text
-    assert wide.mean() > narrow.mean() and f"- holds: HER on top (`ddpg_her` {wide.mean():.3f} > `ddpg` {narrow.mean():.3f})" in text
+    # the difference of the means lies within the wider row's spread, and the line says so
+    diff = wide.mean() - narrow.mean()
+    assert 0 < diff < wide.std()
+    assert (f"- holds: HER on top (`ddpg_her` {wide.mean():.3f} > `ddpg` {narrow.mean():.3f} ({diff:+.3f}, within "
+            f"the seeds' spread: std up to {wide.std():.3f}))") in text
     assert wide.mean() < 0.6 and f"- does not hold: HER at 0.6 or more (`ddpg_her` {wide.mean():.3f} ≥ 0.600)" in text
 
 
@@ -284,7 +288,7 @@ def test_a_runs_block_bounds_a_difference_with_the_same_judge_as_table5(tmp_path
     gap = a.mean() - b.mean()  # 0.15
     assert (f"- does not hold: close (`sac_silp_plus` {a.mean():.3f} − `sac_demon` {b.mean():.3f} = {gap:.3f} > 0.100)"
             in text)
-    assert (f"- holds: on top and close (`sac_silp_plus` {a.mean():.3f} ≥ `sac_demon` {b.mean():.3f}; "
+    assert (f"- holds: on top and close (`sac_silp_plus` {a.mean():.3f} ≥ `sac_demon` {b.mean():.3f} ({gap:+.3f}); "
             f"`sac_silp_plus` {a.mean():.3f} − `sac_demon` {b.mean():.3f} = {gap:.3f} ≤ 0.200)") in text
 
 
@@ -367,3 +371,45 @@ def test_table5_means_each_policys_reaching_trials_over_seeds_and_checks_the_pap
     bad = dict(spec, checks=[{"text": "x", "noise": "paper", "order": ["table5_a", "table5_b", "table5_a"], "max_difference": 0.1}])
     with pytest.raises(ValueError, match="compares two rows"):
         pages.render_block("table5", bad, tmp_path / "p.md")
+
+
+def test_orderings_of_times_are_judged_only_on_one_machine_kind_with_as_many_runs_at_once():
+    values = {"sac": 2000.0, "sac_silp_plus": 1800.0}
+    check = {"text": "less time", "all": [{"order": ["sac", "sac_silp_plus"], "key": "train_wall_s", "strict": True}]}
+    same = tables.judge(check, lambda m, key, stat: values[m] if stat == "mean" else 0.0, lambda m: {"xeon, 1 at once"})
+    assert same == "- holds: less time (`sac` 2,000 > `sac_silp_plus` 1,800 (10% less))"
+    where = {"sac": {"xeon, 1 at once"}, "sac_silp_plus": {"epyc, 2 at once"}}
+    unlike = tables.judge(check, lambda m, key, stat: values[m] if stat == "mean" else 0.0, where.__getitem__)
+    assert unlike.startswith("- not judged, the runs' machines differ: less time (")
+    assert "`sac` on xeon, 1 at once" in unlike and "`sac_silp_plus` on epyc, 2 at once" in unlike
+    # a row whose own runs ran on two kinds is not judged either; success rates are judged wherever they ran
+    mixed = tables.judge(check, lambda m, key, stat: values[m], lambda m: {"xeon, 1 at once", "epyc, 2 at once"})
+    assert mixed.startswith("- not judged")
+    success = {"text": "s", "all": [{"order": ["sac", "sac_silp_plus"]}]}
+    assert tables.judge(success, lambda m, key, stat: 0.5, where.__getitem__).startswith("- holds: s (")
+
+
+def test_a_rows_label_names_the_random_recovery_the_paper_does_not_run(tmp_path):
+    checked = _paper_sac(exploration__mode="random", exploration__mask_colliding_candidates=True)
+    unchecked = _paper_sac(exploration__mode="random", exploration__mask_colliding_candidates=False)
+    type0 = _paper_sac(exploration__mode="random", exploration__mask_colliding_candidates=False, env__collision_type=0)
+    for method, config in (("sac", checked), ("sac_unchecked", unchecked), ("sac_type0", type0)):
+        _run(tmp_path, method, 0, {"success_rate": 0.5}, config)
+    runs = load.load_runs(tmp_path)
+    assert tables.method_label("sac", runs["sac"], "SAC") == "the paper's SAC as written (`sac`)"
+    assert (tables.method_label("sac_unchecked", runs["sac_unchecked"], "SAC")
+            == "the paper's SAC with an unchecked random recovery action (`sac_unchecked`)")
+    # type 0 ends the episode at a collision: no recovery action follows, none is named
+    assert tables.method_label("sac_type0", runs["sac_type0"], "SAC") == "the paper's SAC as written (`sac_type0`)"
+    ours = _paper_sac(exploration__mode="random", exploration__mask_colliding_candidates=False, network__goal_relative=True)
+    assert tables.additions(ours) == ["goal-relative input", "an unchecked random recovery action"]
+
+
+def test_a_value_after_n_episodes_is_the_first_evaluation_past_them(tmp_path):
+    history = [{"episodes": 400, "success_rate": 0.1}, {"episodes": 1010, "success_rate": 0.4},
+               {"episodes": 1500, "success_rate": 0.7}]
+    _run(tmp_path, "sac", 0, {"success_rate": 0.9}, history=history)
+    run = load.load_runs(tmp_path)["sac"][0]
+    assert run.value("success_rate@episodes=1000") == 0.4 and run.value("success_rate@episodes=1500") == 0.7
+    assert run.value("success_rate@episodes=1501") is None and run.value("success_rate") == 0.9
+

@@ -37,8 +37,20 @@ class Run:
     sweep: dict | None
 
     def value(self, key: str) -> float | None:
-        """A number of ``summary.json`` (None when missing, not a number, or NaN)."""
-        value = self.summary.get(key)
+        """A number of ``summary.json`` (None when missing, not a number, or NaN); ``"<name>@episodes=<n>"``:
+        ``<name>`` at the run's first periodic evaluation after ``n`` training episodes (``history.json``).
+
+            >>> run = Run("m", 0, Path("."), {"success_rate": 0.9}, [{"episodes": 500, "success_rate": 0.2},
+            ...           {"episodes": 1040, "success_rate": 0.6}], None, None)
+            >>> run.value("success_rate"), run.value("success_rate@episodes=1000"), run.value("success_rate@episodes=2000")
+            (0.9, 0.6, None)
+        """
+        if "@episodes=" in key:
+            name, episodes = key.split("@episodes=")
+            after = [h for h in self.history if h.get("episodes", -1) >= int(episodes) and name in h]
+            value = min(after, key=lambda h: h["episodes"])[name] if after else None
+        else:
+            value = self.summary.get(key)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
             return None
         return float(value)

@@ -114,8 +114,9 @@ def _acts(config: dict, key: str) -> bool:
     """Whether a setting acts in a run of this config (the planner's does not without demonstrations, ...)."""
     if key.startswith("planner."):
         return bool(get(config, "silp.demos"))
-    if key == "exploration.mask_colliding_candidates":
-        return get(config, "exploration.mode") == "gp"
+    if key == "exploration.mask_colliding_candidates":  # the recovery action's: GP candidates or a random one
+        # (type 0 ends the episode at a collision: no recovery action follows)
+        return get(config, "exploration.mode") in ("gp", "random") and get(config, "env.collision_type") != 0
     if key == "optim.target_entropy":
         return get(config, "algorithm") == "sac"
     if key == "silp.filter":
@@ -144,8 +145,13 @@ def additions(config: dict | None) -> list[str] | None:
             value = spec["absent"][key]
         else:
             raise KeyError(f"the run's config has no {key!r}, and paper.yaml's settings.absent gives no value for it")
+        name = spec["names"].get(key, key)
+        # a setting whose paper value depends on the exploration mode (the random recovery is collision-free)
+        by_mode = spec.get("by_mode", {}).get(key, {}).get(get(config, "exploration.mode"))
+        if by_mode is not None:
+            value_of_paper, name = by_mode["paper"], by_mode["name"]
         if value != value_of_paper and value not in spec["also_paper"].get(key, ()):
-            out.append(spec["names"].get(key, key))
+            out.append(name)
     return out
 
 
@@ -168,11 +174,20 @@ def method_label(method: str, runs: list[Run], name: str | None = None, qualifie
     entry = {"name": entry} if isinstance(entry, str) else entry
     name = name or entry.get("name", method)
     found = [a for a in (additions(r.config) for r in runs) if a is not None]
+    # settings that depart from the paper without being additions of ours (an unchecked recovery action)
+    not_ours = {m["name"] for modes in paper()["settings"].get("by_mode", {}).values() for m in modes.values()
+                if not m.get("ours", True)}
+    departures = sorted({a for added in found for a in added if a in not_ours})
     if found:
-        is_ours = any(found)
+        is_ours = any(a not in not_ours for added in found for a in added)
     else:
         is_ours = bool(entry.get("ours", False) if ours is None else ours)
-    text = f"ours: {name} + additions" if is_ours else f"the paper's {name} as written"
+    if is_ours:
+        text = f"ours: {name} + additions"
+    elif departures:
+        text = f"the paper's {name} with {', '.join(departures)}"
+    else:
+        text = f"the paper's {name} as written"
     return f"{text}{qualifier} (`{method}`)"
 
 
@@ -431,26 +446,58 @@ def runs_table(ctx: Context) -> tuple[str, list[str]]:
 
 
 # ------------------------------------------------------------------------- orderings and differences
+# summary keys that are times: an ordering of them compares like with like only on one machine kind, with the
+# same number of runs at once
+TIME_KEYS = ("train_wall_s", "rollout_time_per_episode_s", "time_to_095_s", "planning_s")
+
+
 def checks(ctx: Context) -> list[str]:
     """The block's ``checks`` on its rows (``judge``); a list in ``checks`` (a YAML alias of a list of checks)
     counts as its items."""
     def value(m: str, key: str, stat: str) -> float | None:
         return getattr(ctx.by_id[m], stat)(key) if m in ctx.by_id else None
 
+    def machines(m: str) -> set[str]:
+        return {_machine(run) for run in ctx.by_id[m].runs} if m in ctx.by_id else set()
+
     listed = ctx.spec.get("checks", [])
-    return [judge(c, value) for item in listed for c in (item if isinstance(item, list) else [item])]
+    return [judge(c, value, machines) for item in listed for c in (item if isinstance(item, list) else [item])]
 
 
-def judge(check: dict, value: Callable[[str, str, str], float | None]) -> str:
+def _is_rate(key: str) -> bool:
+    """A summary key that is a share (``success_rate``, ``success_rate@episodes=1000``)."""
+    return key.split("@")[0].endswith("rate")
+
+
+def _size(values: list[float], key: str, fmt: Callable[[float], str], spread: list[float | None]) -> str:
+    """How far apart two rows are: a time's relative difference, else the difference, with whether it lies
+    within the seeds' spread (the larger std of the two)."""
+    a, b = values
+    if key in TIME_KEYS:
+        return f"{abs(a - b) / a:.0%} {'less' if b < a else 'more'}" if a else ""
+    size = f"{a - b:+.3f}" if _is_rate(key) else f"{a - b:+,.0f}"
+    stds = [s for s in spread if s is not None]
+    if stds and abs(a - b) <= max(stds):
+        size += f", within the seeds' spread: std up to {fmt(max(stds))}"
+    return size
+
+
+def judge(check: dict, value: Callable[[str, str, str], float | None],
+          machines: Callable[[str], set[str]] | None = None) -> str:
     """One line: whether ``check`` holds, with the figures it was judged on.
 
     A check holds when every one of its orderings (``check["all"]``) holds. An ordering
     ``{order: [a, b, c], key: success_rate, strict: false}`` reads ``a ≥ b ≥ c`` of ``value(m, key, stat)``
     (``stat``: ``mean`` by default, ``std`` for the spread over seeds); a number in ``order`` is a threshold
     the rows are held to. With ``max_difference: d`` an ordering of two rows reads ``a − b ≤ d`` instead.
-    ``value`` gives ``None`` for a row that was not run.
+    ``value`` gives ``None`` for a row that was not run. An ordering of two rows also gives its size: a
+    time's relative difference, else the difference and whether it lies within the seeds' spread.
+
+    ``machines(m)``: the machines row ``m``'s runs ran on (with how many runs at once). A check that
+    orders times (:data:`TIME_KEYS`) of rows that ran on different machines, or not as many at once, is
+    not judged: the line says which ran where.
     """
-    parts, holds, missing = [], True, []
+    parts, holds, missing, unlike = [], True, [], {}
     for ordering in check["all"]:
         key, strict = ordering.get("key", "success_rate"), ordering.get("strict", False)
         stat, order = ordering.get("stat", "mean"), ordering["order"]
@@ -460,7 +507,7 @@ def judge(check: dict, value: Callable[[str, str, str], float | None]) -> str:
             raise ValueError(f"{check['text']!r}: a max_difference check compares two rows, got order={order}")
         if any(v is None for v in values):
             continue
-        fmt = rate if max(abs(v) for v in values) < 1 and key.endswith("rate") else (
+        fmt = rate if max(abs(v) for v in values) < 1 and _is_rate(key) else (
             count if max(values) >= 100 else seconds3(values))
         of = " (std)" if stat == "std" else ""
         named = [fmt(v) if isinstance(m, (int, float)) else f"`{m}`{of} {fmt(v)}" for m, v in zip(order, values)]
@@ -470,10 +517,27 @@ def judge(check: dict, value: Callable[[str, str, str], float | None]) -> str:
             parts.append(f"{named[0]} − {named[1]} = {fmt(values[0] - values[1])} {'≤' if ok else '>'} {fmt(bound)}")
         else:
             ok = all((a > b) if strict else (a >= b) for a, b in zip(values, values[1:]))
-            parts.append((" > " if strict else " ≥ ").join(named))
+            part = (" > " if strict else " ≥ ").join(named)
+            rows = [m for m in order if not isinstance(m, (int, float))]
+            if len(order) == 2 and len(rows) == 2 and stat == "mean":
+                size = _size(values, key, fmt, [value(m, key, "std") for m in order])
+                part += f" ({size})" if size else ""
+            parts.append(part)
+        if machines is not None and key in TIME_KEYS:
+            for m in order:
+                if not isinstance(m, (int, float)):
+                    unlike.setdefault(m, machines(m))
         holds &= ok
     if missing:
         return f"- not run: {check['text']} (missing: {', '.join(f'`{m}`' for m in missing)})"
+    if len({frozenset(s) for s in unlike.values()}) > 1 or any(len(s) > 1 for s in unlike.values()):
+        by_machine: dict[str, list[str]] = {}
+        for m, kinds in unlike.items():
+            for kind in sorted(kinds):
+                by_machine.setdefault(kind, []).append(f"`{m}`")
+        where = "; ".join(f"{', '.join(ms)} on {kind}" for kind, ms in by_machine.items())
+        return (f"- not judged, the runs' machines differ: {check['text']} ({'; '.join(parts)}; "
+                f"times compare only on one machine kind with as many runs at once: {where})")
     return f"- {'holds' if holds else 'does not hold'}: {check['text']} ({'; '.join(parts)})"
 
 
