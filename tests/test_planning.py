@@ -622,6 +622,28 @@ def test_demonstrations_through_sampled_nodes_replay_in_the_model(model, envs):
     assert torch.equal(success, demos["next", "success"]) and torch.equal(success, demos["next", "terminated"])
 
 
+def test_the_demonstration_yield_of_episodes_with_and_without_sampled_nodes(model, envs):
+    from omegaconf import OmegaConf
+
+    from torchrl_silp.recipes.diagnose_demos import demonstration_yield
+
+    episodes = rollout(envs[(2, 3)], 11, 40, "scripted")
+    cfg = OmegaConf.create({"planner": {"d": 0.15, "step_size": None, "method": "exact", "sample_spread": None}})
+    plain = demonstration_yield(model, cfg, episodes, 0, torch.Generator().manual_seed(0))
+    more = demonstration_yield(model, cfg, episodes, 64, torch.Generator().manual_seed(0))
+    # one entry per env (its first episode); the extra nodes never lose a path
+    assert plain["found"].shape == (3,) and torch.equal(plain["reached"], more["reached"])
+    assert (more["found"] | ~plain["found"]).all()
+    # a path through achieved goals is never shorter than the straight line from the start to the goal
+    found = plain["found"]
+    assert found.any() and (plain["stretch"][found] >= 1 - 1e-5).all() and (~plain["stretch"][~found].isfinite()).all()
+    # reached: a success before each env's first episode ended
+    done, success = episodes["next", "done"].squeeze(-1), episodes["next", "success"].squeeze(-1)
+    end = torch.where(done.any(-1), done.float().argmax(-1), done.shape[-1] - 1)
+    steps = torch.arange(done.shape[-1])
+    assert torch.equal(plain["reached"], (success & (steps <= end.unsqueeze(-1))).any(-1))
+
+
 # ---------------------------------------------------------------- edge checks
 def test_clearance_over_lipschitz_is_a_radius_free_of_collisions(model):
     gen = torch.Generator().manual_seed(0)

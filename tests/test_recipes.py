@@ -111,6 +111,19 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         # the default tasks all start in the front IK branch
         assert "start in the front branch: 1000 tasks" in diag.stdout
         assert "shoulder-flipped" not in diag.stdout
+        # the demonstrations' analysis reads the run's validation tasks (its 8), never the test ones
+        demos = subprocess.run(
+            [sys.executable, str(RECIPES / "diagnose_demos.py"), str(run_dir), *TINY],
+            cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        )
+        assert demos.returncode == 0, demos.stderr[-3000:]
+        assert "8 validation tasks" in demos.stdout and "the test tasks are not read" in demos.stdout
+        yields = [line for line in demos.stdout.splitlines() if "sampled nodes per episode" in line]
+        assert len(yields) == 3
+        for line in yields:  # shares of the 8 episodes
+            share = float(line.split("a path in ")[1].split()[0])
+            assert share * 8 == round(share * 8)
+        assert "demonstration buffer:" in demos.stdout and "critic on" in demos.stdout
 
 
 @pytest.mark.parametrize("method", ["sac_her", "ddpg_demon"])
