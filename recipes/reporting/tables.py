@@ -394,6 +394,9 @@ COLUMNS = {
     "to_090": Column("Time, frames to 0.9", "r", _to_level(0.9),
                      "training time and frames to the first periodic evaluation at 0.9 or more (the validation "
                      "tasks), over the runs that reached it"),
+    "to_095": Column("Time, frames to 0.95", "r", _to_level(0.95),
+                     "training time and frames to the first periodic evaluation at 0.95 or more, over the runs "
+                     "that reached it"),
     "reached": Column("Reached 0.95", "r",
                       lambda ctx, row: f"{len(row.values('time_to_095_s'))} of {len(row.runs)}"),
     "plan_time": Column("Planning time per rollout (s)", "r", _plan_time,
