@@ -5,6 +5,12 @@ counters, RNG states) and the buffers, written atomically. A resume is refused w
 config differs from the checkpointed one in a field that changes the networks' or buffers' shape
 or meaning (:data:`~torchrl_silp.recipes.preflight.RESUME_FIELDS`). :class:`StopRequest` turns SIGTERM / SIGINT into a checkpoint
 and a stop.
+
+Why not ``torchrl.checkpoint.Checkpoint``: it writes ``manifest.json`` + ``components/``, not the
+``state.pt`` + ``buffers/`` that :func:`~torchrl_silp.recipes.preflight.find_checkpoint` (with its ``.old``
+fallback), :func:`load_trained_networks` and existing runs read. Nor is it a drop-in: no adapter is
+inferred for :class:`~torchrl_silp.data.MixedReplay` (``dumps``/``loads``) or the env's ``torch.Generator``,
+and ``GlobalRNGState`` omits the latter. It would replace only the atomic rename of :func:`save_checkpoint`.
 """
 
 from __future__ import annotations

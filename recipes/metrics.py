@@ -83,6 +83,12 @@ def evaluate_run(cfg, model, policies, device, counters: dict, history: list[dic
     the online one too (``online_success_rate``). On the validation tasks the result is a point of
     ``history`` (with the BC filter's kept share since the last point) and of the learning curve, and
     sets ``time_to_095_s`` the first time it reaches 0.95. Returns the metrics (and the rollout).
+
+    Why inline, not TorchRL's :class:`~torchrl.collectors.Evaluator` (run aside by ``trigger_eval``/``poll``):
+    the loop uses this figure in the same batch (the history point, ``stop_at_success``, ``time_to_095_s``,
+    the checkpoint; ``Evaluator.state_dict`` refuses while an evaluation is pending). And ``Evaluator`` reports
+    reward and episode length of the first ``num_trajectories`` episodes to finish in an env it keeps and resets,
+    not success and collision rates of one deterministic episode on each fixed task of ``seed``.
     """
     evaluated, actor, averaged = policies
     seed = cfg.eval.seed if seed is None else seed

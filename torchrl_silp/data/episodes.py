@@ -40,6 +40,12 @@ class EpisodeAssembler:
     :meth:`load_state_dict` carry them through a checkpoint (plain tensors,
     loadable with ``torch.load(..., weights_only=True)``).
 
+    Why not the collector's ``trajs_per_batch``: with it, ``Collector`` yields only finished
+    episodes, ``trajs_per_batch`` at a time, never the ``frames_per_batch`` batch the loop counts,
+    normalizes, stores (without hindsight relabelling) and runs its updates per batch on. Its
+    unfinished pieces (``_traj_assembly``) are not in ``Collector.state_dict()``, so a resumed run
+    would lose them. Finished episodes short of ``trajs_per_batch`` at the end are never yielded.
+
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
