@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from torchrl_silp.models import UR5eReach
 from torchrl_silp.recipes.schema import load_config
@@ -23,6 +24,23 @@ TINY_RECIPE = ("env.num_envs=4", "collector.frames_per_batch=100", "eval.n_tasks
 def model():
     """The UR5e reach task model with its defaults (stateless, so a module's tests share one)."""
     return UR5eReach()
+
+
+@pytest.fixture(scope="module")
+def model64():
+    """The UR5e reach task model in float64: for the exact geometric comparisons (brute force, finite differences,
+    gradcheck), which float32's rounding would blur."""
+    return UR5eReach(dtype=torch.float64)
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """torch on one thread while a module's tests run (``pytestmark = pytest.mark.usefixtures("one_thread")``):
+    small tensors and single-state checks, where OpenMP threads on a shared machine only contend."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
 
 
 @pytest.fixture

@@ -21,11 +21,6 @@ angles = st.tuples(
 )
 
 
-@pytest.fixture(scope="module")
-def model():
-    return UR5eReach(dtype=torch.float64)
-
-
 def flags_of(model, q, box):
     """The exact collision bit flags of configurations ``q`` against one box, shape ``q.shape[:-1]``."""
     flags, tcp = model.collision_flags(q, box)
@@ -50,8 +45,8 @@ def primitive_mesh(prim) -> trimesh.Trimesh:
 
 @SETTINGS
 @given(q=angles, seed=st.integers(0, 2**16))
-def test_sphere_cover_contains_primitive_surfaces(model, q, seed):
-    robot = model.robot
+def test_sphere_cover_contains_primitive_surfaces(model64, q, seed):
+    robot = model64.robot
     q3 = torch.tensor(q, dtype=torch.float64)
     rot, pos = robot.frames(q3)
     centres, radii = robot.link_spheres(q3)
@@ -87,12 +82,12 @@ def brute_force_obstacle_margin(centres, radii, box, spacing=0.004):
 
 @settings(max_examples=15, deadline=None, derandomize=True)
 @given(q=angles, cx=st.floats(0.3, 0.7), cy=st.floats(0.1, 0.4))
-def test_obstacle_flag_agrees_with_brute_force(model, q, cx, cy):
+def test_obstacle_flag_agrees_with_brute_force(model64, q, cx, cy):
     q3 = torch.tensor(q, dtype=torch.float64)
-    box = aabb_from_center(torch.tensor([cx, cy, 0.15], dtype=torch.float64), model.obstacle_size)
-    centres, radii = model.robot.link_spheres(q3)
+    box = aabb_from_center(torch.tensor([cx, cy, 0.15], dtype=torch.float64), model64.obstacle_size)
+    centres, radii = model64.robot.link_spheres(q3)
     margin = brute_force_obstacle_margin(centres, radii, box)
-    flag = (flags_of(model, q3, box) & CollisionReason.OBSTACLE).item() != 0
+    flag = (flags_of(model64, q3, box) & CollisionReason.OBSTACLE).item() != 0
     exact = sphere_box_distance(centres, radii, box)
     # within the sampling resolution of the box surface they agree
     assert torch.allclose(exact, margin, atol=0.004 * math.sqrt(3))
@@ -101,9 +96,9 @@ def test_obstacle_flag_agrees_with_brute_force(model, q, cx, cy):
     assert flag == bool((exact < 0).any())
     # the clearance is the exact distance (-radius for a centre inside the box),
     # and a margin inflates the spheres by that much
-    clearance = model.clearance(q3, box)[0].item()
+    clearance = model64.clearance(q3, box)[0].item()
     assert clearance == pytest.approx(torch.maximum(exact, -radii).min().item(), abs=1e-9)
-    inflated, _ = model.collision_flags(q3, box, {"obstacle": 0.02})
+    inflated, _ = model64.collision_flags(q3, box, {"obstacle": 0.02})
     assert bool(inflated.item() & CollisionReason.OBSTACLE) == (clearance < 0.02)
 
 
@@ -126,12 +121,12 @@ def test_point_box_signed_distance_matches_definition(p, c, s):
     assert d == pytest.approx(expected, abs=1e-12)
 
 
-def test_table_and_workspace_and_self_flags(model):
-    robot = model.robot
+def test_table_and_workspace_and_self_flags(model64):
+    robot = model64.robot
     far_box = torch.tensor([5.0, 6.0, 5.0, 6.0, 5.0, 6.0], dtype=torch.float64)
     g = torch.Generator().manual_seed(0)
     q3 = (torch.rand(4000, 3, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
-    flags = flags_of(model, q3, far_box)
+    flags = flags_of(model64, q3, far_box)
     centres, radii = robot.link_spheres(q3)
     names = np.array(robot.sphere_link_names)
     not_base = torch.as_tensor(names != "base_link")
@@ -147,21 +142,21 @@ def test_table_and_workspace_and_self_flags(model):
     self_hit = (d < radii[grip][:, None] + radii[others][None, :]).flatten(1).any(-1)
     assert torch.equal((flags & CollisionReason.SELF) != 0, self_hit)
     assert self_hit.any() and table.any() and out.any() and (flags == 0).any()
-    assert torch.equal(model.collides(q3, far_box), flags != 0)
-    assert torch.equal(model.collides(q3, scene(far_box, 4000)), flags != 0)
+    assert torch.equal(model64.collides(q3, far_box), flags != 0)
+    assert torch.equal(model64.collides(q3, scene(far_box, 4000)), flags != 0)
     # the clearance per reason has the sign of the flags
-    clearance = model.clearance(q3, far_box)
-    for bit, name in enumerate(model.collision_reasons):
+    clearance = model64.clearance(q3, far_box)
+    for bit, name in enumerate(model64.collision_reasons):
         assert torch.equal(clearance[:, bit] < 0, (flags & (1 << bit)) != 0), name
 
 
-def test_home_pose_is_free(model):
+def test_home_pose_is_free(model64):
     # UR "home" with the tool down: TCP at (0.49, 0.13, 0.26); the box 0.17 m away in y
-    box = aabb_from_center(torch.tensor([0.3, 0.4, 0.15], dtype=torch.float64), model.obstacle_size)
+    box = aabb_from_center(torch.tensor([0.3, 0.4, 0.15], dtype=torch.float64), model64.obstacle_size)
     q = torch.tensor([0.0, -math.pi / 2, math.pi / 2], dtype=torch.float64)
-    assert not model.collides(q, box)
+    assert not model64.collides(q, box)
     # and free with the motion check's margin: a motion can start there
-    assert model.collision_flags(q, box, model.motion_margin())[0].item() == 0
+    assert model64.collision_flags(q, box, model64.motion_margin())[0].item() == 0
 
 
 @SETTINGS
@@ -173,31 +168,31 @@ def test_home_pose_is_free(model):
     step=st.sampled_from([0.01, 0.02, 0.05]),
     conservative=st.booleans(),
 )
-def test_motion_check_is_subdivision_with_the_lipschitz_margin(model, q, dq, cx, cy, step, conservative):
-    model.conservative = conservative
+def test_motion_check_is_subdivision_with_the_lipschitz_margin(model64, q, dq, cx, cy, step, conservative):
+    model64.conservative = conservative
     try:
         q_from = torch.tensor(q, dtype=torch.float64)
         q_to = q_from + torch.tensor(dq, dtype=torch.float64)
-        box = aabb_from_center(torch.tensor([cx, cy, 0.15], dtype=torch.float64), model.obstacle_size)
-        free = model.segment_collision_free(q_from[None], q_to[None], scene(box, 1), resolution=step).item()
-        flags, _ = model.motion_collision_flags(q_from, q_to, scene(box), resolution=step)
+        box = aabb_from_center(torch.tensor([cx, cy, 0.15], dtype=torch.float64), model64.obstacle_size)
+        free = model64.segment_collision_free(q_from[None], q_to[None], scene(box, 1), resolution=step).item()
+        flags, _ = model64.motion_collision_flags(q_from, q_to, scene(box), resolution=step)
         assert free == (flags.item() == 0)
         n = max(math.ceil((q_to - q_from).abs().max().item() / step), 1) + 1
         pts = torch.stack([q_from + t * (q_to - q_from) for t in np.linspace(0, 1, n)])
-        margin = model.motion_margin(step)
+        margin = model64.motion_margin(step)
         # samples no more than `step` apart, each with the margin L * step / 2 (none when not conservative)
-        for name, bound in model.lipschitz().items():
+        for name, bound in model64.lipschitz().items():
             assert margin[name] == (bound * step / 2 if conservative else 0.0)
-        any_hit = (model.collision_flags(pts, box, margin)[0] != 0).any().item()
+        any_hit = (model64.collision_flags(pts, box, margin)[0] != 0).any().item()
         assert free == (not any_hit)
-        if model.collides(torch.stack([q_from, q_to]), box).any():
+        if model64.collides(torch.stack([q_from, q_to]), box).any():
             assert not free
         if free and conservative:
             # sound: no colliding configuration between the samples either (4x finer, exact)
             fine = torch.stack([q_from + t * (q_to - q_from) for t in np.linspace(0, 1, 4 * (n - 1) + 1)])
-            assert not model.collides(fine, box).any()
+            assert not model64.collides(fine, box).any()
     finally:
-        model.conservative = True
+        model64.conservative = True
 
 
 def test_subdivision_alone_misses_grazes_the_margin_catches():
@@ -219,45 +214,45 @@ def test_subdivision_alone_misses_grazes_the_margin_catches():
     assert not (sound & hit).any() and not sound[missed].any()
 
 
-def test_motion_check_batched_equals_single(model):
+def test_motion_check_batched_equals_single(model64):
     g = torch.Generator().manual_seed(1)
     q_from = (torch.rand(64, 3, generator=g, dtype=torch.float64) * 2 - 1) * 2
     q_to = q_from + (torch.rand(64, 3, generator=g, dtype=torch.float64) - 0.5)
-    box = aabb_from_center(torch.tensor([0.5, 0.25, 0.15], dtype=torch.float64), model.obstacle_size)
-    batched = model.segment_collision_free(q_from, q_to, scene(box, 64), resolution=0.02)
+    box = aabb_from_center(torch.tensor([0.5, 0.25, 0.15], dtype=torch.float64), model64.obstacle_size)
+    batched = model64.segment_collision_free(q_from, q_to, scene(box, 64), resolution=0.02)
     # each segment is sampled at its own count: the batch is the segments alone
     for i in range(64):
-        alone = model.segment_collision_free(q_from[i : i + 1], q_to[i : i + 1], scene(box, 1), resolution=0.02)
+        alone = model64.segment_collision_free(q_from[i : i + 1], q_to[i : i + 1], scene(box, 1), resolution=0.02)
         assert bool(alone) == bool(batched[i])
     assert batched.any() and (~batched).any()
     # the padded batch check samples each motion at the longest one's count: at least as fine
-    flags, _ = model.motion_collision_flags(q_from, q_to, scene(box, 64), resolution=0.02)
+    flags, _ = model64.motion_collision_flags(q_from, q_to, scene(box, 64), resolution=0.02)
     assert ((flags.squeeze(-1) != 0) | batched).all()
 
 
-def test_lipschitz_bounds_the_geometry_speed(model):
+def test_lipschitz_bounds_the_geometry_speed(model64):
     # finite differences at random configurations stay below the bounds
-    bounds = model.lipschitz()
-    assert set(bounds) == set(model.collision_reasons)
+    bounds = model64.lipschitz()
+    assert set(bounds) == set(model64.collision_reasons)
     g = torch.Generator().manual_seed(2)
     q = (torch.rand(2000, 3, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
     dq = (torch.rand(2000, 3, generator=g, dtype=torch.float64) * 2 - 1) * 1e-3
     h = dq.abs().amax(-1, keepdim=True)
-    c0, t0 = model.robot.spheres_and_tcp(q)
-    c1, t1 = model.robot.spheres_and_tcp(q + dq)
+    c0, t0 = model64.robot.spheres_and_tcp(q)
+    c1, t1 = model64.robot.spheres_and_tcp(q + dq)
     assert ((c1 - c0).norm(dim=-1) / h).max() <= bounds["obstacle"]
     assert ((t1 - t0).abs().amax(-1, keepdim=True) / h).max() <= bounds["workspace"]
 
 
-def test_bad_collision_inputs(model):
+def test_bad_collision_inputs(model64):
     with pytest.raises(ValueError, match="obstacle"):
-        model.collides(torch.zeros(3, dtype=torch.float64), torch.zeros(5, dtype=torch.float64))
+        model64.collides(torch.zeros(3, dtype=torch.float64), torch.zeros(5, dtype=torch.float64))
     with pytest.raises(ValueError, match="config"):
-        model.collides(torch.zeros(2, dtype=torch.float64), torch.zeros(6, dtype=torch.float64))
+        model64.collides(torch.zeros(2, dtype=torch.float64), torch.zeros(6, dtype=torch.float64))
     with pytest.raises(TypeError, match="config"):
-        model.collides([0.0, 0.0, 0.0], torch.zeros(6, dtype=torch.float64))
+        model64.collides([0.0, 0.0, 0.0], torch.zeros(6, dtype=torch.float64))
     with pytest.raises(ValueError, match="resolution"):
-        model.segment_collision_free(torch.zeros(1, 3), torch.ones(1, 3), scene(torch.zeros(6), 1), resolution=0)
+        model64.segment_collision_free(torch.zeros(1, 3), torch.ones(1, 3), scene(torch.zeros(6), 1), resolution=0)
 
 
 _SPECIAL = st.sampled_from([0.0, -0.5, 0.5, 1e30, -1e30, float("nan"), float("inf"), -float("inf")])
@@ -280,17 +275,17 @@ def test_box_check_accepts_exactly_the_finite_ordered_boxes(values):
     assert str(err.value).startswith(expected)
 
 
-def test_compiled_kernel_equals_the_eager_one_at_padded_sizes(model):
+def test_compiled_kernel_equals_the_eager_one_at_padded_sizes(model64):
     """compile_collision=True: batches padded to a power of two, flags and TCP equal to the eager kernel's."""
-    compiled = UR5eReach(model.robot, compile_collision=True)
+    compiled = UR5eReach(model64.robot, compile_collision=True)
     gen = torch.Generator().manual_seed(3)
     for n in (5, 70):  # padded to 64 and 128: two compilations
-        tasks = model.sample_tasks(n, generator=gen)
-        anywhere = model.config_low + torch.rand(n, 3, generator=gen) * (model.config_high - model.config_low)
+        tasks = model64.sample_tasks(n, generator=gen)
+        anywhere = model64.config_low + torch.rand(n, 3, generator=gen) * (model64.config_high - model64.config_low)
         q = torch.where(torch.arange(n).unsqueeze(-1) % 2 == 0, tasks["joint_position"], anywhere)  # free and not
-        margin = model.motion_margin()
+        margin = model64.motion_margin()
         flags, tcp = compiled.collision_flags(q, tasks.select("obstacle"), margin)
-        ref_flags, ref_tcp = model.collision_flags(q, tasks.select("obstacle"), margin)
+        ref_flags, ref_tcp = model64.collision_flags(q, tasks.select("obstacle"), margin)
         assert flags.shape == (n, 1) and tcp.shape == (n, 3)
         assert torch.equal(flags, ref_flags) and bool((flags != 0).any()) and bool((flags == 0).any())
         torch.testing.assert_close(tcp, ref_tcp)
@@ -298,39 +293,39 @@ def test_compiled_kernel_equals_the_eager_one_at_padded_sizes(model):
     assert empty[0].shape == (0, 1)
 
 
-def test_cover_points_from_trig_equal_per_sample_spheres_and_check_their_shapes(model):
-    q = model.config_low + torch.rand(50, 3, generator=torch.Generator().manual_seed(5)) * (
-        model.config_high - model.config_low)
-    cos, sin = model.robot.joint_trig(q)
-    points = model.robot.cover_points_from_trig(cos, sin)  # (3, N, S + 1)
-    s = model.robot.n_spheres
+def test_cover_points_from_trig_equal_per_sample_spheres_and_check_their_shapes(model64):
+    q = model64.config_low + torch.rand(50, 3, generator=torch.Generator().manual_seed(5)) * (
+        model64.config_high - model64.config_low)
+    cos, sin = model64.robot.joint_trig(q)
+    points = model64.robot.cover_points_from_trig(cos, sin)  # (3, N, S + 1)
+    s = model64.robot.n_spheres
     for i in (0, 17, 49):  # one configuration at a time: the same products batched otherwise, float32's last bit
-        centres, tcp = model.robot.spheres_and_tcp(q[i])
+        centres, tcp = model64.robot.spheres_and_tcp(q[i])
         torch.testing.assert_close(points[:, i, :s].T, centres, atol=1e-7, rtol=0)
         torch.testing.assert_close(points[:, i, s], tcp, atol=1e-7, rtol=0)
-    torch.testing.assert_close(points[:, :, s].T, model.robot.reference_fk(q), atol=1e-5, rtol=0)
+    torch.testing.assert_close(points[:, :, s].T, model64.robot.reference_fk(q), atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="cos and sin"):
-        model.robot.cover_points_from_trig(cos, sin[:3])
+        model64.robot.cover_points_from_trig(cos, sin[:3])
 
 
-def test_compiled_kernel_follows_margins_and_layouts_at_one_size(model):
+def test_compiled_kernel_follows_margins_and_layouts_at_one_size(model64):
     """One padded size met with other margins and a strided config: each result is the eager kernel's."""
-    compiled = UR5eReach(model.robot, compile_collision=True)
+    compiled = UR5eReach(model64.robot, compile_collision=True)
     gen = torch.Generator().manual_seed(4)
-    tasks = model.sample_tasks(64, generator=gen)
-    anywhere = model.config_low + torch.rand(64, 3, generator=gen) * (model.config_high - model.config_low)
+    tasks = model64.sample_tasks(64, generator=gen)
+    anywhere = model64.config_low + torch.rand(64, 3, generator=gen) * (model64.config_high - model64.config_low)
     strided = torch.cat([anywhere, anywhere], -1)[:, :3]  # rows 6 floats apart: another layout, same values
-    calls = [(anywhere, None), (anywhere, model.motion_margin()), (strided, {"obstacle": 0.05}), (anywhere, None)]
+    calls = [(anywhere, None), (anywhere, model64.motion_margin()), (strided, {"obstacle": 0.05}), (anywhere, None)]
     for i, (q, margin) in enumerate(calls):
         # the last call reuses the first one's compilation: it would raise if it compiled anew
         with torch.compiler.set_stance("fail_on_recompile" if i == len(calls) - 1 else "default"):
             flags, tcp = compiled.collision_flags(q, tasks.select("obstacle"), margin)
-        ref_flags, ref_tcp = model.collision_flags(q, tasks.select("obstacle"), margin)
+        ref_flags, ref_tcp = model64.collision_flags(q, tasks.select("obstacle"), margin)
         assert torch.equal(flags, ref_flags) and bool((flags != 0).any()) and bool((flags == 0).any())
         torch.testing.assert_close(tcp, ref_tcp)
 
 
-def test_compiled_kernel_keeps_compiling_past_dynamo_s_default_limit(model, monkeypatch):
+def test_compiled_kernel_keeps_compiling_past_dynamo_s_default_limit(model64, monkeypatch):
     """Ten (size, margins) met: ten compilations, where dynamo's default limit of 8 would run the rest eagerly."""
     graphs = []
 
@@ -340,12 +335,12 @@ def test_compiled_kernel_keeps_compiling_past_dynamo_s_default_limit(model, monk
 
     compile_ = torch.compile
     monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: compile_(fn, **{**kwargs, "backend": counting_backend}))
-    compiled = UR5eReach(model.robot, compile_collision=True)
-    tasks = model.sample_tasks(64, generator=torch.Generator().manual_seed(6))
+    compiled = UR5eReach(model64.robot, compile_collision=True)
+    tasks = model64.sample_tasks(64, generator=torch.Generator().manual_seed(6))
     for i in range(10):
         margin = {"obstacle": 0.01 * i, "self": 0.001 * i}
         flags, tcp = compiled.collision_flags(tasks["joint_position"], tasks["obstacle"], margin)
-        ref_flags, ref_tcp = model.collision_flags(tasks["joint_position"], tasks["obstacle"], margin)
+        ref_flags, ref_tcp = model64.collision_flags(tasks["joint_position"], tasks["obstacle"], margin)
         assert torch.equal(flags, ref_flags)
         torch.testing.assert_close(tcp, ref_tcp)
     assert len(graphs) == 10

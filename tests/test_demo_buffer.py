@@ -18,7 +18,8 @@ def env():
 
 
 @pytest.fixture(scope="module")
-def model(env):
+def env_model(env):
+    """The env's own task model (collision_type=1), the one its episodes were drawn with."""
     return env.model
 
 
@@ -167,34 +168,34 @@ def test_checkpoint_round_trip(env, episodes, tmp_path):
     assert (restored.interaction_buffer[:n] == a).all()
 
 
-def test_transition_keys(model):
-    keys = transition_keys(model)
+def test_transition_keys(env_model):
+    keys = transition_keys(env_model)
     assert keys[: len(TRANSITION_KEYS)] == TRANSITION_KEYS
     named = [*STATE_KEYS, *[("next", k) for k in STATE_KEYS]]
     assert set(keys) == set(TRANSITION_KEYS) | set(named) and len(keys) == len(set(keys))
-    more = transition_keys(model, ("observation", "goal_offset"))
+    more = transition_keys(env_model, ("observation", "goal_offset"))
     assert set(more) == set(keys) | {"goal_offset", ("next", "goal_offset")}
     # the default buffer stores exactly these
-    assert DemoReplayBuffer(model).keys == keys
-    assert DemoReplayBuffer(model, observation_keys=("observation", "goal_offset")).keys == more
-    assert DemoReplayBuffer(model, keys=None).keys is None
+    assert DemoReplayBuffer(env_model).keys == keys
+    assert DemoReplayBuffer(env_model, observation_keys=("observation", "goal_offset")).keys == more
+    assert DemoReplayBuffer(env_model, keys=None).keys is None
 
 
-def test_demo_buffer_plans_from_episodes(env, model, episodes):
+def test_demo_buffer_plans_from_episodes(env, env_model, episodes):
     gen = torch.Generator().manual_seed(3)
     demos = DemoReplayBuffer(env, capacity=100_000, batch_size=64, planner_kwargs={"n_pairs": 4, "generator": gen})
-    assert demos.model is model
+    assert demos.model is env_model
     index = demos.extend(episodes)
     assert len(demos) > 0 and demos.planning_time > 0
     # 8 rows of 50 steps, plus the episodes that ended early (a success or max_steps)
     assert demos.episodes_planned == 8 + int(episodes["next", "done"][:, :-1].sum())
     assert demos.demos_added == len(demos) == index.numel()
     # what is stored is what the planner makes of the episodes (same draw), keys selected
-    planned = plan_demonstrations(model, episodes, n_pairs=4, generator=torch.Generator().manual_seed(3))
+    planned = plan_demonstrations(env_model, episodes, n_pairs=4, generator=torch.Generator().manual_seed(3))
     assert len(planned) == len(demos)
     stored = demos[: len(demos)]
-    assert set(stored.keys(True, True)) - {"index"} == set(transition_keys(model))
-    for key in transition_keys(model):
+    assert set(stored.keys(True, True)) - {"index"} == set(transition_keys(env_model))
+    for key in transition_keys(env_model):
         if key != "is_demo":
             assert torch.equal(stored[key], planned[key]), key
     batch = demos.sample()
@@ -202,24 +203,24 @@ def test_demo_buffer_plans_from_episodes(env, model, episodes):
     # demo actions are feasible and their rewards are the model's own on the named states
     assert batch["action"].abs().max() <= 1.0
     s0, s1 = batch.select(*STATE_KEYS), batch["next"].select(*STATE_KEYS)
-    torch.testing.assert_close(batch["next", "reward"], model.outcome(s0, s1)[0])
+    torch.testing.assert_close(batch["next", "reward"], env_model.outcome(s0, s1)[0])
     dist = (s1["achieved_goal"] - s1["desired_goal"]).norm(dim=-1, keepdim=True)
-    torch.testing.assert_close(batch["next", "reward"], torch.where(dist < model.success_distance, 1.0, -dist))
-    assert torch.equal(batch["observation"], model.observation(s0))
-    assert torch.equal(batch["next", "observation"], model.observation(s1))
+    torch.testing.assert_close(batch["next", "reward"], torch.where(dist < env_model.success_distance, 1.0, -dist))
+    assert torch.equal(batch["observation"], env_model.observation(s0))
+    assert torch.equal(batch["next", "observation"], env_model.observation(s1))
     # a demo ends with its successful step
     assert torch.equal(batch["next", "done"], batch["next", "terminated"])
-    assert torch.equal(batch["next", "done"], dist < model.success_distance)
+    assert torch.equal(batch["next", "done"], dist < env_model.success_distance)
 
 
-def test_mixed_batches_carry_the_named_state(env, model, episodes):
-    mixed = MixedReplay(DemoReplayBuffer(model, planner_kwargs={"n_pairs": 2}), demo_fraction=0.25, batch_size=64)
-    assert mixed.keys == transition_keys(model)
+def test_mixed_batches_carry_the_named_state(env, env_model, episodes):
+    mixed = MixedReplay(DemoReplayBuffer(env_model, planner_kwargs={"n_pairs": 2}), demo_fraction=0.25, batch_size=64)
+    assert mixed.keys == transition_keys(env_model)
     mixed.extend(episodes)
     mixed.demo_buffer.extend(episodes)
     out = mixed.sample()
     assert int(out["is_demo"].sum()) == 16
-    assert set(out.keys(True, True)) == set(transition_keys(model))
+    assert set(out.keys(True, True)) == set(transition_keys(env_model))
     # interaction rows are stored transitions (not discarded ones), with their named state intact
     flat = episodes.reshape(-1)
     flat = flat[~flat["next", "discard"].squeeze(-1)]
@@ -227,8 +228,8 @@ def test_mixed_batches_carry_the_named_state(env, model, episodes):
     match = (rows["observation"].unsqueeze(1) == flat["observation"].unsqueeze(0)).all(-1)
     match &= (rows["action"].unsqueeze(1) == flat["action"].unsqueeze(0)).all(-1)
     assert match.any(1).all()
-    assert torch.equal(rows["observation"], model.observation(rows))
-    assert torch.equal(rows["next", "observation"], model.observation(rows["next"]))
+    assert torch.equal(rows["observation"], env_model.observation(rows))
+    assert torch.equal(rows["next", "observation"], env_model.observation(rows["next"]))
 
 
 def _dir_bytes(path):

@@ -42,13 +42,8 @@ PREV_CONFIG, PREV_ACTION = "_gp_prev_config", "_gp_prev_action"
 KEYS = (CONFIG, REWARD, COUNT, PREV_CONFIG, PREV_ACTION)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # small tensors: on a shared 2-core machine OpenMP threads only contend
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+# small tensors: on a shared 2-core machine OpenMP threads only contend
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # ------------------------------------------------------ closed form (numpy)

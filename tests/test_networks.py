@@ -11,16 +11,10 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, Val
 from torchrl.objectives import DDPGLoss, SACLoss, TD3Loss
 
 from torchrl_silp import UR5eReachEnv
-from torchrl_silp.models import UR5eReach
 from torchrl_silp.modules.networks import NextGoalOffsetQ
 from torchrl_silp.transforms import GoalRelative
 
 STATE_KEYS = ["joint_position", "achieved_goal", "obstacle", "desired_goal"]
-
-
-@pytest.fixture(scope="module")
-def model64():
-    return UR5eReach(dtype=torch.float64)
 
 
 class Record(nn.Module):

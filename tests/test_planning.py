@@ -29,11 +29,6 @@ STATE_KEYS = ("joint_position", "achieved_goal", "obstacle", "desired_goal")
 
 
 @pytest.fixture(scope="module")
-def model():
-    return UR5eReach()
-
-
-@pytest.fixture(scope="module")
 def exact_model(model):
     # the same robot, motions checked at their samples without the Lipschitz margin
     return UR5eReach(model.robot, conservative=False)

@@ -42,17 +42,7 @@ def within_budget(wall: float, budget_s: float) -> bool:
     return wall <= BUDGET_SLACK * budget_s + BUDGET_SLACK_S
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)  # single-state checks: one thread is fastest
-    yield
-    torch.set_num_threads(previous)
-
-
-@pytest.fixture(scope="module")
-def model():
-    return UR5eReach()
+pytestmark = pytest.mark.usefixtures("one_thread")  # single-state checks: one thread is fastest
 
 
 def scene_of(model, task: TensorDictBase) -> TensorDictBase:

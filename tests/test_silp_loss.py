@@ -13,7 +13,6 @@ from torchrl.modules import Actor, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss
 
 from torchrl_silp import UR5eReachEnv
-from torchrl_silp.models import UR5eReach
 from torchrl_silp.objectives import SILPLoss
 
 N = 8
@@ -60,11 +59,6 @@ def make_loss(kind):
         return TD3Loss(actor, critic, action_spec=spec()), actor
     actor = sac_actor()
     return SACLoss(actor, ValueOperator(Critic(), in_keys=["observation", "action"]), action_spec=spec()), actor
-
-
-@pytest.fixture(scope="module")
-def model():
-    return UR5eReach()
 
 
 def make_batch(model, seed=0, demos=IS_DEMO):

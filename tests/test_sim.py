@@ -10,14 +10,8 @@ from omegaconf import OmegaConf
 
 mujoco = pytest.importorskip("mujoco")
 
-from torchrl_silp.models import UR5eReach  # noqa: E402
 from torchrl_silp.sim import MujocoTwin  # noqa: E402
 from torchrl_silp.sim.transfer import NOISE_LEVELS, Perception, run_transfer, scenario_tasks  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def model():
-    return UR5eReach()
 
 
 def straight_policy(model, goal_q):
