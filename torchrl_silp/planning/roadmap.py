@@ -114,7 +114,8 @@ class ExperienceRoadmap:
             ``sample_spread`` per joint and clipped to the joint limits, and kept
             when it is free in the episode's scene (:meth:`~torchrl_silp.models.TaskModel.collision_flags`);
             the drawn ones that collide are dropped. Their edges are checked as every
-            other edge.
+            other edge, and :meth:`queries` counts them among the nodes its random pairs
+            and the node nearest the goal are drawn from.
         sample_spread: the largest offset of a sampled node per joint, in the
             configuration's units (rad); ``None``: two actions' reach
             (``2 * model.action_scale``). A spread as wide as the joint ranges draws
