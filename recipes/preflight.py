@@ -71,8 +71,9 @@ def resume_fields_differ(cfg: DictConfig, saved_path: Path) -> tuple[str, object
     now = OmegaConf.to_container(cfg, resolve=True)
     for key, value in ADDED_FIELDS.items():
         section, name = key.rsplit(".", 1)
-        if isinstance(_dotted(saved, section), dict):
-            _dotted(saved, section).setdefault(name, value)
+        for config in (saved, now):  # a config without the key (older, or a recipe's that lacks it) ran with this value
+            if isinstance(_dotted(config, section), dict):
+                _dotted(config, section).setdefault(name, value)
     for field in (*RESUME_FIELDS, *RESUME_PRESENCE_FIELDS):
         old, new = _dotted(saved, field), _dotted(now, field)
         if field in RESUME_PRESENCE_FIELDS:
