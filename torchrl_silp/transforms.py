@@ -15,12 +15,11 @@ from tensordict import TensorDictBase
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import CatTensors, Transform
 
+from torchrl_silp.choices import COLLISION_TYPES
 from torchrl_silp.validation import check_choice, check_nonnegative_float, check_positive_float
 
 __all__ = ["CollisionHandling", "GoalRelative", "PerceptionNoise", "FlatCatTensors", "RunningObservationNorm",
            "COLLISION_TYPES"]
-
-from torchrl_silp.choices import COLLISION_TYPES
 
 
 class _ModelTransform(Transform):
@@ -274,7 +273,6 @@ class FlatCatTensors(CatTensors):
         return observation_spec
 
 
-
 class RunningObservationNorm(Transform):
     """Observations standardised by running statistics of the data seen so far, then clipped.
 
@@ -381,7 +379,7 @@ class RunningObservationNorm(Transform):
         return observation_spec
 
     def set_container(self, container) -> None:
-        # in several chains at once (module docstring): the latest container is kept, without
+        # in several chains at once (see the class docstring): the latest container is kept, without
         # Transform's refusal of a second parent
         self.reset_parent()
         super().set_container(container)
