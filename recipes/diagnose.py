@@ -96,14 +96,15 @@ def boxes(scene: torch.Tensor) -> torch.Tensor | None:
     return scene.reshape(*scene.shape[:-1], -1, 6)
 
 
-def main(argv: list[str]) -> None:
-    if not argv or argv[0] in ("-h", "--help"):
-        print(__doc__)
-        return
-    run_dir, overrides = Path(argv[0]), argv[1:]
-    # the report is stdout: keep TorchRL's INFO lines (which it writes to stdout) out of it
+def load_run(run_dir: Path, overrides: list[str]):
+    """A run's checkpoint on the CPU for a diagnosis: ``(cfg, model, actor, rl, state, ckpt)``.
+
+    ``cfg`` is ``config/sac_silp.yaml`` with the overrides the run was trained with; ``actor`` the policy
+    the run evaluated (the averaged one under ``eval.actor_average_decay``), ``rl`` the actor-critic loss
+    holding the critic, ``state`` the checkpoint's training state. TorchRL's INFO lines, which it writes
+    to stdout, are silenced: a diagnosis prints its report there.
+    """
     logging.getLogger("torchrl").setLevel(logging.WARNING)
-    candidates = 1024
     ckpt = run_dir / "checkpoint"
     if not (ckpt / "state.pt").exists():
         raise FileNotFoundError(f"no checkpoint under {run_dir} (expected {ckpt / 'state.pt'})")
@@ -111,9 +112,17 @@ def main(argv: list[str]) -> None:
     device = torch.device("cpu")
     model = make_model(cfg, device)
     env = make_env(cfg, model, device, seed=0)  # specs only
-    # the actor the run evaluated (the averaged one under eval.actor_average_decay): diagnose that policy
     actor, loss, state = load_trained_networks(cfg, model, env, ckpt, device)
-    rl = rl_loss_of(loss)
+    return cfg, model, actor, rl_loss_of(loss), state, ckpt
+
+
+def main(argv: list[str]) -> None:
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__)
+        return
+    candidates = 1024
+    cfg, model, actor, rl, state, ckpt = load_run(Path(argv[0]), argv[1:])
+    device = torch.device("cpu")
     if state.get("averaged_actor") is not None:
         print("policy: the averaged actor the run evaluated (eval.actor_average_decay)")
     cfg_key, ag_key, dg_key = model.config_key, model.achieved_goal_key, model.desired_goal_key

@@ -21,7 +21,6 @@ demonstration buffer) and reads the validation tasks only (``eval.seed``), never
 
 from __future__ import annotations
 
-import logging
 import sys
 from pathlib import Path
 
@@ -36,10 +35,8 @@ from torchrl_silp.data import FilledStorageCheckpointer
 from torchrl_silp.eval import episode_outcomes, evaluate
 from torchrl_silp.planning import ExperienceRoadmap, roadmap_paths
 from torchrl_silp.planning.roadmap import split_episodes
-from torchrl_silp.recipes.builders import make_env, make_model, make_observation_transform, rl_loss_of
-from torchrl_silp.recipes.checkpointing import load_trained_networks
-from torchrl_silp.recipes.diagnose import median, min_q
-from torchrl_silp.recipes.schema import load_config
+from torchrl_silp.recipes.builders import make_observation_transform
+from torchrl_silp.recipes.diagnose import load_run, median, min_q
 
 SAMPLED_NODES = (0, 32, 128)  # the roadmap's extra free nodes per episode compared
 CRITIC_ROWS = 4096  # demonstration transitions the critic is read on
@@ -68,17 +65,9 @@ def main(argv: list[str]) -> None:
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
         return
-    run_dir, overrides = Path(argv[0]), argv[1:]
-    logging.getLogger("torchrl").setLevel(logging.WARNING)  # the report is stdout
-    ckpt = run_dir / "checkpoint"
-    if not (ckpt / "state.pt").exists():
-        raise FileNotFoundError(f"no checkpoint under {run_dir} (expected {ckpt / 'state.pt'})")
-    cfg = load_config("sac_silp", overrides)
+    run_dir = Path(argv[0])
+    cfg, model, actor, rl, _, ckpt = load_run(run_dir, argv[1:])
     device = torch.device("cpu")
-    model = make_model(cfg, device)
-    env = make_env(cfg, model, device, seed=0)  # specs only
-    actor, loss, _ = load_trained_networks(cfg, model, env, ckpt, device)
-    rl = rl_loss_of(loss)
     n = cfg.eval.n_tasks
 
     def validation_tasks(collision_type: int) -> TransformedEnv:
