@@ -10,4 +10,13 @@ What they share: ``builders`` (the env, networks, buffers, loss and optimisers a
 ``update`` (the gradient step and its compilation), ``checkpointing`` (save, resume, rebuild a
 run's networks), ``metrics`` (counters, logged metrics, ``summary.json``), ``start`` (device,
 seeds and run directory), ``schema`` with ``config/`` (the typed configs and their values).
+
+The recipes import each other by their installed name, ``torchrl_silp.recipes.<module>`` (pyproject.toml
+maps this folder to it), not as ``recipes.<module>`` nor relatively: run as ``python recipes/x.py`` a script
+has no package, so a relative import fails, and giving it one by setting ``__package__`` (PEP 366) is
+deprecated for removal in Python 3.15; a top-level ``recipes`` package would put a generic name into every
+user's site-packages and load each module twice under two names (two hydra ``ConfigStore`` registrations,
+two identities of each class). An editor follows these imports into the checkout when the checkout is
+installed with ``pip install -e . --config-settings editable_mode=strict``, whose link tree static tools read
+(the default editable mode maps the folder through an import hook they cannot).
 """
