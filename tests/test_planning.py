@@ -585,6 +585,8 @@ def test_sampled_nodes_extend_the_roadmap_with_free_configurations_near_the_expe
         visited = n - int(plain.is_goal_node[e].any())
         # the visited nodes first, as without sampling; the goal node last; the sampled ones between
         torch.testing.assert_close(rm.config[e, :visited], plain.config[e, :visited])
+        assert int(rm.num_visited[e]) == visited == int(plain.num_visited[e])
+        assert rm.is_sampled_node[e, visited: visited + m - n].all() and int(rm.is_sampled_node[e].sum()) == m - n
         assert torch.equal(rm.is_goal_node[e, :m].nonzero().squeeze(-1), plain.is_goal_node[e, :n].nonzero().squeeze(-1) + m - n)
         sampled = rm.config[e, visited: visited + m - n]
         # free in the episode's scene, within the joint limits, within the spread of a visited state or the goal
@@ -602,6 +604,18 @@ def test_sampled_nodes_extend_the_roadmap_with_free_configurations_near_the_expe
     p0 = roadmap_paths(plain, with_goal, zeros, plain.num_nodes[with_goal] - 1)
     p1 = roadmap_paths(rm, with_goal, zeros, rm.num_nodes[with_goal] - 1)
     assert p0.found.any() and (p1.found | ~p0.found).all() and (p1.cost[p0.found] <= p0.cost[p0.found] + 1e-5).all()
+
+
+def test_random_pairs_start_and_end_at_visited_nodes_with_sampled_nodes(model, envs):
+    # the sampled nodes are waypoints: a random pair's start and goal are visited nodes of its episode
+    episodes = rollout(envs[(2, 3)], 5, 40, "scripted")
+    rm = ExperienceRoadmap(model, episodes, lazy=True, goal_node=True, sampled_nodes=200, sample_spread=3.0,
+                           generator=torch.Generator().manual_seed(0))
+    assert (rm.is_sampled_node.sum(-1) > rm.num_visited).all()  # most nodes sampled: a uniform draw would hit them
+    episode, start, goal = rm.queries(50, torch.Generator().manual_seed(1), own_query=False)
+    assert episode.numel() > 0
+    assert (start < rm.num_visited[episode]).all() and (goal < rm.num_visited[episode]).all()
+    assert not rm.is_sampled_node[episode, start].any() and not rm.is_sampled_node[episode, goal].any()
 
 
 def test_demonstrations_through_sampled_nodes_replay_in_the_model(model, envs):

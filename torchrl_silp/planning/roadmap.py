@@ -114,8 +114,11 @@ class ExperienceRoadmap:
             ``sample_spread`` per joint and clipped to the joint limits, and kept
             when it is free in the episode's scene (:meth:`~torchrl_silp.models.TaskModel.collision_flags`);
             the drawn ones that collide are dropped. Their edges are checked as every
-            other edge, and :meth:`queries` counts them among the nodes its random pairs
-            and the node nearest the goal are drawn from.
+            other edge. They are waypoints: a path may pass through them and end at
+            the one nearest the goal, but :meth:`queries` draws its random pairs among the
+            visited nodes only, so that every demonstration starts from a state the
+            policy was in (a start drawn among the sampled nodes, most of the nodes with
+            a wide spread, fills the demonstrations with states the policy never visits).
         sample_spread: the largest offset of a sampled node per joint, in the
             configuration's units (rad); ``None``: two actions' reach
             (``2 * model.action_scale``). A spread as wide as the joint ranges draws
@@ -131,6 +134,8 @@ class ExperienceRoadmap:
         reached: bool ``[E]``, whether the episode reached its goal.
         is_goal_node: bool ``[E, N]``, True on the goal node of each episode
             (all False without ``goal_node``).
+        is_sampled_node: bool ``[E, N]``, True on the sampled nodes (all False without ``sampled_nodes``).
+        num_visited: long ``[E]``: the visited nodes, the first of each episode.
         distance: ``[E, N, N]`` achieved-goal distances between nodes.
         candidates: bool ``[E, N, N]``, symmetric: node pairs within ``d``.
         checked: bool ``[E, N, N]``: candidate edges whose check has run.
@@ -207,7 +212,8 @@ class ExperienceRoadmap:
             reached.index_add_(0, episode.reshape(-1), success.reshape(-1).long())
         self.reached = reached > 0
 
-        # a last column flags goal nodes through the padding and the de-duplication
+        # a last column tells the nodes apart through the padding and the de-duplication:
+        # 0 visited, 1 the goal node, 2 sampled
         rows_ = torch.cat([node_config, node_goal.to(node_config.dtype), torch.zeros_like(node_config[:, :1])], dim=-1)
         goal_rows = goal_episode = None
         if goal_node:
@@ -242,8 +248,11 @@ class ExperienceRoadmap:
         self.config = qt[..., :D].contiguous()
         self.achieved_goal = qt[..., D : D + G].contiguous()
         self.mask = mask
-        self.is_goal_node = (qt[..., -1] > 0.5) & mask
+        kind = qt[..., -1].round()
+        self.is_goal_node = (kind == 1) & mask
+        self.is_sampled_node = (kind == 2) & mask
         self.num_nodes = mask.sum(-1)
+        self.num_visited = self.num_nodes - (self.is_goal_node | self.is_sampled_node).sum(-1)
 
         self.distance = torch.cdist(self.achieved_goal, self.achieved_goal)
         pair = mask.unsqueeze(1) & mask.unsqueeze(2)
@@ -276,7 +285,7 @@ class ExperienceRoadmap:
         free = (flags.squeeze(-1) == 0).nonzero().squeeze(-1)
         q, episode = q[free], episode[free]
         goal = model.achieved_goal(q).to(q.dtype)
-        return torch.cat([q, goal, torch.zeros_like(q[:, :1])], dim=-1), episode
+        return torch.cat([q, goal, torch.full_like(q[:, :1], 2.0)], dim=-1), episode
 
     # names of the UR5e days: the configuration and the TCP (the achieved goal)
     @property
@@ -364,7 +373,8 @@ class ExperienceRoadmap:
 
     # ---------------------------------------------------------------- queries
     def nearest_goal_node(self) -> torch.Tensor:
-        """long ``[E]``: the visited node of each episode whose achieved goal is nearest its desired goal."""
+        """long ``[E]``: the node of each episode (visited or sampled, not the goal node) whose achieved goal is
+        nearest its desired goal."""
         dist = (self.achieved_goal - self.goal.unsqueeze(1).to(self.achieved_goal.dtype)).norm(dim=-1)
         return dist.masked_fill(~self.mask | self.is_goal_node, math.inf).argmin(-1)
 
@@ -374,11 +384,12 @@ class ExperienceRoadmap:
         """Start/goal queries: each episode's own, then ``n_pairs`` random node pairs.
 
         Random pairs draw the start uniformly among an episode's visited nodes
-        and the goal uniformly among the others (episodes with one node get
-        none). Each episode's own query goes from its first state to the
-        visited node nearest its real goal (that node *is* the goal when the
-        episode reached it), unless the two coincide; with goal nodes, a second
-        one goes from the first state to the goal node.
+        and the goal uniformly among its other visited nodes (episodes with one
+        visited node get none); sampled nodes are waypoints only. Each episode's
+        own query goes from its first state to the node nearest its real goal
+        (:meth:`nearest_goal_node`; it *is* the goal when the episode reached
+        it), unless the two coincide; with goal nodes, a second one goes from
+        the first state to the goal node.
 
         Args:
             n_pairs: random pairs per episode (>= 0).
@@ -393,7 +404,7 @@ class ExperienceRoadmap:
         check_nonnegative_int(n_pairs, name="n_pairs")
         E, device = self.num_episodes, self.device
         has_goal_node = self.is_goal_node.any(-1)
-        n = (self.num_nodes - has_goal_node.long()).unsqueeze(-1)  # visited nodes come first
+        n = self.num_visited.unsqueeze(-1)  # visited nodes come first
         start = torch.zeros(E, n_pairs + 1, dtype=torch.long, device=device)
         goal = self.nearest_goal_node().unsqueeze(-1).repeat(1, n_pairs + 1)
         if bool(has_goal_node.any()):
