@@ -178,8 +178,12 @@ def make_actor_critic(cfg, model, env, device):
         if cfg.algorithm == "td3":
             raise ValueError("network.next_tcp_feature needs algorithm sac or ddpg: TorchRL's TD3Loss gives the "
                              "critic only the actor's inputs, not the named state the model steps from")
-        q_net = NextGoalOffsetQ(_mlp(cfg, 1, device), model, observation_keys=keys)
+        q_net = NextGoalOffsetQ(_mlp(cfg, 1, device), model, observation_keys=keys,
+                                clearance=bool(cfg.network.get("next_clearance_feature", False)))
         critic = ValueOperator(q_net, in_keys=q_net.in_keys)
+    elif cfg.network.get("next_clearance_feature", False):
+        raise ValueError("network.next_clearance_feature needs network.next_tcp_feature: the Q-network that steps "
+                         "the model (NextGoalOffsetQ) is the one that reads the next clearance")
     else:
         critic = ValueOperator(_mlp(cfg, 1, device), in_keys=[*keys, "action"])
     with torch.no_grad():

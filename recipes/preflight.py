@@ -37,7 +37,7 @@ RESUME_FIELDS = ("algorithm", "env.name", "env.model", "env.robot", "env.num_env
 # fields whose presence (set or null) must match; their value may change on resume
 RESUME_PRESENCE_FIELDS = ("eval.actor_average_decay",)
 # keys added within a RESUME_FIELDS section since runs were saved: a saved config without one ran with this value
-ADDED_FIELDS = {"network.normalize_observation": False, "env.model.boxes": None}
+ADDED_FIELDS = {"network.normalize_observation": False, "network.next_clearance_feature": False, "env.model.boxes": None}
 
 
 # ------------------------------------------------------------------ the run folder

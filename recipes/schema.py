@@ -121,6 +121,9 @@ class NetworkConfig:
     # ours, off by default: the networks read the observation standardised by running statistics of the
     # collected data, clipped to +-5 (torchrl_silp.RunningObservationNorm, key "observation_normalized")
     normalize_observation: bool = False
+    # ours, off by default: the Q-network (next_tcp_feature) also reads the task model's per-reason clearance of
+    # the next configuration, clipped to +-0.2 m (NextGoalOffsetQ(clearance=True))
+    next_clearance_feature: bool = False
 
 
 @dataclass
@@ -469,6 +472,12 @@ def check_config(cfg: DictConfig) -> None:
     if not isinstance(cfg.network.normalize_observation, bool):
         raise ConfigError("network.normalize_observation",
                           f"must be true or false, got {cfg.network.normalize_observation!r}")
+    if not isinstance(cfg.network.next_clearance_feature, bool):
+        raise ConfigError("network.next_clearance_feature",
+                          f"must be true or false, got {cfg.network.next_clearance_feature!r}")
+    if cfg.network.next_clearance_feature and not cfg.network.next_tcp_feature:
+        raise ConfigError("network.next_clearance_feature",
+                          "needs network.next_tcp_feature=true (the Q-network that steps the task model reads it)")
     _int(cfg, "optim.batch_size")
     _number(cfg, "optim.utd_ratio", 0, low_open=True)
     _number(cfg, "optim.lr", 0, low_open=True)

@@ -233,3 +233,55 @@ def test_losses_differentiate_through_the_model(kind):
     grads = [p.grad for p in loss.actor_network_params.values(True, True) if p.requires_grad]
     assert grads and all(g is not None and torch.isfinite(g).all() for g in grads)
     assert sum(float(g.abs().sum()) for g in grads) > 0
+
+
+# ---------------------------------------------------------------- clearance
+def test_next_clearance_is_negative_exactly_where_the_next_configuration_collides(model):
+    """The clearance input against the collision flags (the model's fused kernel, a separate implementation)."""
+    gen = torch.Generator().manual_seed(3)
+    td = model.sample_tasks(4096, gen)
+    low, high = model.robot.joint_low, model.robot.joint_high
+    td["joint_position"] = low + (high - low) * torch.rand(4096, 3, generator=gen)
+    td["achieved_goal"] = model.robot.fk(td["joint_position"])
+    td["action"] = 2 * torch.rand(4096, 3, generator=gen) - 1
+    td["observation"] = torch.zeros(4096, 15)
+    record = Record()
+    q_net = NextGoalOffsetQ(record, model, clearance=True, clearance_clip=0.1)
+    q_net(*inputs_of(q_net, td))
+    _, _, offset, clearance = record.inputs
+    assert clearance.shape == (4096, len(model.collision_reasons)) and clearance.abs().max() <= 0.1
+    next_q = model.next_config(td["joint_position"], td["action"])
+    flags = model.collision_flags(next_q, td.select("obstacle"))[0].squeeze(-1)
+    for bit, reason in enumerate(model.collision_reasons):
+        hit = (flags >> bit) & 1 == 1
+        if reason in ("obstacle", "table", "self"):
+            assert 0 < int(hit.sum()) < 4096, reason  # both sides of the test are exercised
+        assert torch.equal(clearance[:, bit] < 0, hit), reason
+    # the offset input is unchanged by the extra one
+    plain = Record()
+    q_plain = NextGoalOffsetQ(plain, model)
+    q_plain(*inputs_of(q_plain, td))
+    assert torch.equal(plain.inputs[-1], offset) and len(plain.inputs) == len(record.inputs) - 1
+
+
+def test_next_clearance_gradient_reaches_the_actor_through_sac(model):
+    torch.manual_seed(0)
+    env, actor = _env_and_actor("sac")
+    model = env.base_env.model
+    q_net = NextGoalOffsetQ(MLP(num_cells=[16], out_features=1), model, ["observation", "goal_offset"], clearance=True)
+    critic = ValueOperator(q_net, in_keys=q_net.in_keys)
+    with torch.no_grad():
+        data = env.rollout(6, actor).reshape(-1)
+    critic(data.clone())  # the lazy MLP takes its input width
+    loss = _loss("sac", actor, critic, env)
+    out = loss(data)
+    out["loss_actor"].backward()
+    grads = [p.grad for p in loss.actor_network_params.values(True, True) if p.requires_grad]
+    assert grads and all(g is not None and torch.isfinite(g).all() for g in grads)
+    # the action's gradient through the clearance alone: an MLP reading only that input
+    only = NextGoalOffsetQ(Record(), model, clearance=True)  # Record sums its last input: the clearance
+    td = data[:64].clone()
+    td["action"] = td["action"].detach().requires_grad_(True)
+    only(*inputs_of(only, td)).sum().backward()
+    assert torch.isfinite(td["action"].grad).all()
+    assert td["action"].grad.abs().sum() > 0

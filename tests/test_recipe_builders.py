@@ -36,6 +36,22 @@ def test_critic_reads_the_goal_offset_and_the_model_next_goal():
     assert critic.in_keys == ["observation", "action"]
 
 
+def test_next_clearance_feature_widens_the_critic_by_the_collision_reasons():
+    from torchrl_silp.recipes.schema import ConfigError, check_config
+
+    cfg = config("env.num_envs=4", "network.next_clearance_feature=true")
+    model = builders.make_model(cfg, torch.device("cpu"))
+    env = builders.make_env(cfg, model, torch.device("cpu"), seed=0)
+    _, critic = builders.make_actor_critic(cfg, model, env, torch.device("cpu"))
+    _, plain = builders.make_actor_critic(config("env.num_envs=4"), model, env, torch.device("cpu"))
+    assert critic.module.clearance and not plain.module.clearance
+    first, first_plain = critic.module.mlp[0], plain.module.mlp[0]
+    assert first.in_features == first_plain.in_features + len(model.collision_reasons)
+    with pytest.raises(ConfigError) as error:
+        check_config(config("network.next_clearance_feature=true", "network.next_tcp_feature=false"))
+    assert error.value.key == "network.next_clearance_feature"
+
+
 def test_the_networks_are_stock_linear_and_relu_layers():
     cfg = config("env.num_envs=4")
     model = builders.make_model(cfg, torch.device("cpu"))

@@ -9,6 +9,8 @@ import torch
 from tensordict import NestedKey, TensorDict, unravel_key
 from torch import nn
 
+from torchrl_silp.validation import check_bool, check_positive_float
+
 __all__ = ["NextGoalOffsetQ"]
 
 
@@ -39,6 +41,17 @@ class NextGoalOffsetQ(nn.Module):
     only the actor's ``in_keys`` and the action, so with TD3 list the state keys
     among the actor's ``in_keys`` too (a missing input raises a ``KeyError``).
 
+    With ``clearance=True`` (ours) the MLP also reads the model's per-reason
+    clearance of the next configuration (:meth:`TaskModel.clearance
+    <torchrl_silp.models.TaskModel.clearance>`, metres, negative where that
+    reason collides), clipped to ``[-clearance_clip, clearance_clip]``::
+
+        mlp(*observations, action, desired_goal - next_achieved_goal, clip(clearance(next_config, scene)))
+
+    A critic on the raw scene must learn which action brings which link into which
+    obstacle; the clearance says it in one number per reason, and its gradient
+    (through the distances of the model's geometry) reaches the actor.
+
     The model is a plain attribute, not a submodule (a task model is no
     ``nn.Module``): ``.to(device)`` does not move it, pass a model on the
     device of the inputs. A deep copy of the wrapper shares the model (the model
@@ -52,6 +65,9 @@ class NextGoalOffsetQ(nn.Module):
         model: the :class:`~torchrl_silp.models.TaskModel`.
         observation_keys: the keys the MLP reads before the action (a list of keys; a string is one key).
         action_key: the action's key.
+        clearance: also feed the next configuration's clipped clearance (``len(model.collision_reasons)``
+            more inputs).
+        clearance_clip: the clip of the clearance (m): a reason farther than this reads as this far.
 
     Examples:
         >>> import torch
@@ -76,6 +92,8 @@ class NextGoalOffsetQ(nn.Module):
         model,
         observation_keys: Sequence[NestedKey] = ("observation",),
         action_key: NestedKey = "action",
+        clearance: bool = False,
+        clearance_clip: float = 0.2,
     ):
         super().__init__()
         if not callable(mlp):
@@ -89,6 +107,8 @@ class NextGoalOffsetQ(nn.Module):
         self.model = model  # a TaskModel is no nn.Module: not registered, not in the state_dict
         self.observation_keys = [unravel_key(k) for k in observation_keys]
         self.action_key = unravel_key(action_key)
+        self.clearance = check_bool(clearance, name="clearance")
+        self.clearance_clip = check_positive_float(clearance_clip, name="clearance_clip", unit="metres")
         if not self.observation_keys:
             raise ValueError("observation_keys must name at least one key")
         self.in_keys = self.in_keys_for(model, self.observation_keys, self.action_key)
@@ -130,9 +150,14 @@ class NextGoalOffsetQ(nn.Module):
             {key: inputs[i] for key, i in self._state_index.items()}, batch_size=action.shape[:-1]
         )
         # the model's unchecked pieces: a host-synced input check cannot run inside the critic's vmap
-        next_achieved = model.achieved_goal(model.next_config(state.get(model.config_key), action))
-        offset = state.get(model.desired_goal_key) - next_achieved
-        return self.mlp(*inputs[: self.num_mlp_inputs], offset)
+        next_config = model.next_config(state.get(model.config_key), action)
+        offset = state.get(model.desired_goal_key) - model.achieved_goal(next_config)
+        if not self.clearance:
+            return self.mlp(*inputs[: self.num_mlp_inputs], offset)
+        clip = self.clearance_clip
+        # a reason the scene lacks (no table link) is +inf: it reads as the clip, with no gradient
+        clearance = model.clearance(next_config, state.select(*model.scene_keys)).clamp(-clip, clip)
+        return self.mlp(*inputs[: self.num_mlp_inputs], offset, clearance.to(offset.dtype))
 
     def __deepcopy__(self, memo):
         # share the (stateless) task model; copy everything else
@@ -145,4 +170,5 @@ class NextGoalOffsetQ(nn.Module):
         return out
 
     def extra_repr(self) -> str:
-        return f"model={type(self.model).__name__}, in_keys={self.in_keys}"
+        clearance = f", clearance_clip={self.clearance_clip}" if self.clearance else ""
+        return f"model={type(self.model).__name__}, in_keys={self.in_keys}{clearance}"
