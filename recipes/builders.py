@@ -230,21 +230,18 @@ def make_collector(cfg, env, policy, total_frames: int, init_random_frames: int,
 
 
 # ------------------------------------------------------------------- buffers
+def planner_kwargs(cfg) -> dict:
+    """``planner.*`` as the keyword arguments of :func:`~torchrl_silp.planning.plan_demonstrations`."""
+    names = ("d", "n_pairs", "step_size", "method", "goal_node", "own_query", "insert_nodes", "sampled_nodes",
+             "sample_spread")
+    return {name: cfg.planner[name] for name in names}
+
+
 def make_buffers(cfg, model, device) -> MixedReplay:
     """The interaction buffer D_pi (hindsight-relabelled with ``replay_buffer.her``) and the demonstration
     buffer D_demo with its planner, mixed ``replay_buffer.demo_fraction`` demos per batch (none without
     ``silp.demos``)."""
-    planner = {
-        "d": cfg.planner.d,
-        "n_pairs": cfg.planner.n_pairs,
-        "step_size": cfg.planner.step_size,
-        "method": cfg.planner.method,
-        "goal_node": cfg.planner.goal_node,
-        "own_query": cfg.planner.own_query,
-        "insert_nodes": cfg.planner.insert_nodes,
-        "sampled_nodes": cfg.planner.sampled_nodes,
-        "sample_spread": cfg.planner.sample_spread,
-    }
+    planner = planner_kwargs(cfg)
     keys = observation_keys(cfg)
     if cfg.planner.collision_net is not None:  # the paper's planner: edges checked by the learned model
         net = load_collision_net(cfg.planner.collision_net).to(device)

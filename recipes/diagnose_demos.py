@@ -13,7 +13,9 @@ demonstration buffer) and reads the validation tasks only (``eval.seed``), never
   The share of episodes with such a path, among those the policy failed, is what SILP+ can imitate
   there; the same with ``planner.sampled_nodes`` free configurations around the visited states
   (ours) shows what nodes beyond the visited ones add. A path's length in the achieved-goal space
-  against the straight distance says how far round it goes;
+  against the straight distance says how far round it goes. What the run's whole planner (its random
+  pairs too) makes of the same episodes: demonstration transitions per episode, their mean length in
+  steps, and its time per episode on this machine;
 * the batch: the demonstrations' share of a batch, the BC weights, the buffers' fill;
 * the critic on stored demonstrations: Q of the demonstration's action against Q of the policy's, and
   which of the two truly gets the higher one-step reward (through the task model's own step).
@@ -22,6 +24,7 @@ demonstration buffer) and reads the validation tasks only (``eval.seed``), never
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -33,9 +36,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_silp import CollisionHandling, ReachEnv
 from torchrl_silp.data import FilledStorageCheckpointer
 from torchrl_silp.eval import episode_outcomes, evaluate
-from torchrl_silp.planning import ExperienceRoadmap, roadmap_paths
+from torchrl_silp.planning import ExperienceRoadmap, plan_demonstrations, roadmap_paths
 from torchrl_silp.planning.roadmap import split_episodes
-from torchrl_silp.recipes.builders import make_observation_transform
+from torchrl_silp.recipes.builders import make_observation_transform, planner_kwargs
 from torchrl_silp.recipes.diagnose import load_run, median, min_q
 
 SAMPLED_NODES = (0, 32, 128)  # the roadmap's extra free nodes per episode compared
@@ -59,6 +62,19 @@ def demonstration_yield(model, cfg, episodes: TensorDictBase, sampled_nodes: int
     first = split_episodes(episodes)[1][:, 0]  # each env's first episode: the validation task itself
     return {"found": found[first], "reached": roadmap.reached[first], "stretch": stretch[first],
             "nodes": roadmap.num_nodes[first].float().mean().item()}
+
+
+def demonstration_cost(model, cfg, episodes: TensorDictBase, sampled_nodes: int, generator: torch.Generator) -> dict:
+    """The run's planner with ``sampled_nodes`` on ``episodes``: demonstration transitions per episode, mean
+    demonstration length (steps) and planning seconds per episode."""
+    kwargs = {**planner_kwargs(cfg), "sampled_nodes": sampled_nodes}
+    start = time.perf_counter()
+    demos = plan_demonstrations(model, episodes, generator=generator, **kwargs)
+    seconds = time.perf_counter() - start
+    n_episodes = int(split_episodes(episodes)[1].max()) + 1
+    n_demos = int(demos["next", "done"].sum())
+    return {"transitions": demos.shape[0] / n_episodes, "length": demos.shape[0] / max(n_demos, 1),
+            "seconds": seconds / n_episodes}
 
 
 def main(argv: list[str]) -> None:
@@ -102,6 +118,11 @@ def main(argv: list[str]) -> None:
                   f"{out['found'][failed].float().mean():.3f} of the {int(failed.sum())} that failed; path length over "
                   f"the straight distance median "
                   f"{median(stretch):.2f} (90 %: {torch.quantile(stretch, 0.9).item() if stretch.numel() else float('nan'):.2f})")
+        print(f"the run's planner (n_pairs {cfg.planner.n_pairs}, goal node {cfg.planner.goal_node}) on the same episodes:")
+        for k in SAMPLED_NODES:
+            cost = demonstration_cost(model, cfg, episodes, k, torch.Generator().manual_seed(0))
+            print(f"  {k:4d} sampled nodes per episode: {cost['transitions']:.1f} demonstration transitions per episode, "
+                  f"{cost['length']:.1f} steps a demonstration, {1000 * cost['seconds']:.1f} ms of planning per episode")
 
         print(f"batch: demo_fraction {cfg.replay_buffer.demo_fraction}, BC weights lambda1 {cfg.silp.lambda1} "
               f"lambda2 {cfg.silp.lambda2}, BC filter {cfg.silp.filter}; update ratio {cfg.optim.utd_ratio}, "

@@ -118,11 +118,17 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
         )
         assert demos.returncode == 0, demos.stderr[-3000:]
         assert "8 validation tasks" in demos.stdout and "the test tasks are not read" in demos.stdout
-        yields = [line for line in demos.stdout.splitlines() if "sampled nodes per episode" in line]
+        yields = [line for line in demos.stdout.splitlines() if "sampled nodes per episode (mean" in line]
         assert len(yields) == 3
         for line in yields:  # shares of the 8 episodes
             share = float(line.split("a path in ")[1].split()[0])
             assert share * 8 == round(share * 8)
+        costs = [line for line in demos.stdout.splitlines() if "ms of planning per episode" in line]
+        assert len(costs) == 3
+        for line in costs:  # random pairs among the visited nodes always give some; a demonstration is a step or more
+            transitions = float(line.split("sampled nodes per episode: ")[1].split()[0])
+            length = float(line.split("transitions per episode, ")[1].split()[0])
+            assert transitions > 0 and length >= 1
         assert "demonstration buffer:" in demos.stdout and "critic on" in demos.stdout
 
 
