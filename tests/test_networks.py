@@ -6,11 +6,11 @@ import pytest
 import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Compose, TransformedEnv
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import DDPGLoss, SACLoss, TD3Loss
 
-from torchrl_silp import UR5eReachEnv
+from torchrl_silp import ReachEnv, UR5eReach, UR5eReachEnv
 from torchrl_silp.modules.networks import NextGoalOffsetQ
 from torchrl_silp.transforms import GoalRelative
 
@@ -170,8 +170,11 @@ def test_clipped_action_components_get_no_gradient(model64):
 
 
 # ------------------------------------------------------- in TorchRL losses
-def _env_and_actor(kind):
-    env = TransformedEnv(UR5eReachEnv(num_envs=4, seed=0), GoalRelative())
+def _env_and_actor(kind, model=None):
+    if model is None:
+        env = TransformedEnv(UR5eReachEnv(num_envs=4, seed=0), GoalRelative())
+    else:
+        env = TransformedEnv(ReachEnv(model, num_envs=4, seed=0), Compose(model.observation_transform(), GoalRelative()))
     spec = env.action_spec_unbatched
     keys = ["observation", "goal_offset"]
     if kind == "sac":
@@ -264,9 +267,12 @@ def test_next_clearance_is_negative_exactly_where_the_next_configuration_collide
     assert torch.equal(plain.inputs[-1], offset) and len(plain.inputs) == len(record.inputs) - 1
 
 
-def test_next_clearance_gradient_reaches_the_actor_through_sac(model):
+@pytest.mark.parametrize(("num_boxes", "compiled"), [(1, False), (3, False), (3, True)])
+def test_next_clearance_gradient_reaches_the_actor_through_sac(num_boxes, compiled):
+    """Inside SACLoss's vmap, eager and compiled: the one-box model's own clearance and the several-box one
+    (ArmReach's), whose clearance must make no host-synced check nor change shape with the values."""
     torch.manual_seed(0)
-    env, actor = _env_and_actor("sac")
+    env, actor = _env_and_actor("sac", UR5eReach(num_boxes=num_boxes))
     model = env.base_env.model
     q_net = NextGoalOffsetQ(MLP(num_cells=[16], out_features=1), model, ["observation", "goal_offset"], clearance=True)
     critic = ValueOperator(q_net, in_keys=q_net.in_keys)
@@ -274,10 +280,13 @@ def test_next_clearance_gradient_reaches_the_actor_through_sac(model):
         data = env.rollout(6, actor).reshape(-1)
     critic(data.clone())  # the lazy MLP takes its input width
     loss = _loss("sac", actor, critic, env)
-    out = loss(data)
+    forward = torch.compile(loss, fullgraph=True) if compiled else loss
+    out = forward(data)
     out["loss_actor"].backward()
     grads = [p.grad for p in loss.actor_network_params.values(True, True) if p.requires_grad]
     assert grads and all(g is not None and torch.isfinite(g).all() for g in grads)
+    if compiled:
+        return
     # the action's gradient through the clearance alone: an MLP reading only that input
     only = NextGoalOffsetQ(Record(), model, clearance=True)  # Record sums its last input: the clearance
     td = data[:64].clone()

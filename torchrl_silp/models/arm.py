@@ -299,13 +299,14 @@ class ArmReach(TaskModel):
         return torch.cat(out) if len(out) > 1 else out[0]
 
     # ------------------------------------------------------------- geometry
-    def _flat(self, config, scene):
+    def _flat(self, config, scene, check_values: bool = True):
         d = self.config_dim
         _check_tensor("config", config, d)
         obstacle = scene.get("obstacle") if isinstance(scene, TensorDictBase) else scene
         _check_tensor("obstacle", obstacle, 6 * self.num_boxes)
-        _check_finite("config", config)
-        check_boxes("obstacle", obstacle)
+        if check_values:
+            _check_finite("config", config)
+            check_boxes("obstacle", obstacle)
         batch = torch.broadcast_shapes(config.shape[:-1], obstacle.shape[:-1])
         q = config.to(self.dtype).expand(*batch, d).reshape(-1, d)
         boxes = obstacle.to(self.dtype).expand(*batch, 6 * self.num_boxes).reshape(-1, self.num_boxes, 6)
@@ -330,14 +331,16 @@ class ArmReach(TaskModel):
         return flags.reshape(*batch, 1), tcp.reshape(*batch, 3)
 
     def clearance(self, config, scene):
-        batch, centres, tcp, boxes = self._flat(config, scene)
+        # shapes checked, values not: NaN propagates, and no host sync stops it running inside a critic's
+        # vmap or a compiled graph (NextGoalOffsetQ(clearance=True))
+        batch, centres, tcp, boxes = self._flat(config, scene, check_values=False)
         r = self.robot.sphere_radii
         lo, hi = boxes[..., 0::2].unsqueeze(-2), boxes[..., 1::2].unsqueeze(-2)
         c = centres.unsqueeze(1)
         gap = torch.maximum(lo - c, c - hi).clamp(min=0).norm(dim=-1)
         obstacle_c = (gap - r).flatten(1).amin(-1)
-        t = self.robot.table_mask
-        table_c = (centres[:, t, 2] - r[t]).amin(-1) if t.any() else torch.full_like(obstacle_c, math.inf)
+        # the table's spheres by a where, not a mask index, so the shapes stay static (+inf without table links)
+        table_c = torch.where(self.robot.table_mask, centres[..., 2] - r, math.inf).amin(-1)
         self_c = self.robot.self_clearance(centres)
         ws_c = torch.minimum(tcp - self.workspace_low, self.workspace_high - tcp).amin(-1)
         return torch.stack([obstacle_c, table_c, self_c, ws_c], -1).reshape(*batch, 4)

@@ -226,7 +226,12 @@ class TaskModel(ABC):
 
     @abstractmethod
     def clearance(self, config: torch.Tensor, scene: TensorDictBase) -> torch.Tensor:
-        """Per-reason clearance ``(..., R)`` in metres (negative: that reason collides)."""
+        """Per-reason clearance ``(..., R)`` in metres (negative: that reason collides).
+
+        A critic may read it inside ``vmap`` and ``torch.compile``
+        (:class:`~torchrl_silp.modules.NextGoalOffsetQ` with ``clearance=True``): check shapes, not values
+        (no host sync), and keep the shapes independent of the values (``torch.where``, not a mask index).
+        """
 
     @abstractmethod
     def lipschitz(self) -> dict[str, float]:

@@ -221,8 +221,7 @@ class UR5eReach(ArmReach):
         lo, hi = box[:, None, 0::2], box[:, None, 1::2]
         gap = torch.maximum(lo - centres, centres - hi).clamp(min=0)
         obstacle_c = (gap.norm(dim=-1) - r).amin(-1)
-        t = robot.table_mask
-        table_c = (centres[:, t, 2] - r[t]).amin(-1)
+        table_c = torch.where(robot.table_mask, centres[..., 2] - r, math.inf).amin(-1)  # static shapes
         self_c = robot.self_clearance(centres)
         ws_c = torch.minimum(tcp - self.workspace_low, self.workspace_high - tcp).amin(-1)
         return torch.stack([obstacle_c, table_c, self_c, ws_c], -1).reshape(*batch, 4)
