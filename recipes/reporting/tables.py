@@ -263,7 +263,9 @@ def _changed(ctx: Context, row: Row) -> str:
     """``key=value`` for each setting in which the row's config differs from the baseline row's."""
     if ctx.baseline is None or not ctx.baseline.runs or not row.runs:
         return "—"
-    mine, base = flatten(row.runs[0].config or {}), flatten(ctx.baseline.runs[0].config or {})
+    absent = paper()["settings"]["absent"]  # a switch's value in a config that predates it
+    mine = {**absent, **flatten(row.runs[0].config or {})}
+    base = {**absent, **flatten(ctx.baseline.runs[0].config or {})}
     keys = sorted(k for k in set(mine) & set(base) if _is_setting(k) and mine[k] != base[k])
     return ", ".join(f"`{k}={_yaml(mine[k])}`" for k in keys) or "none (the baseline)"
 
@@ -376,8 +378,9 @@ COLUMNS = {
                        "*paper's*: the paper's settings (`recipes/config/paper_settings.yaml`); *ours*: each of "
                        "our additions the runs' `config.yaml` turns on (`docs/paper_vs_ours.md`)"),
     "changed": Column("Changed from the baseline", "l", _changed,
-                      "the settings in which a row's `config.yaml` differs from the baseline row's (keys only one of "
-                      "them has, added to the code later, aside)"),
+                      "the settings in which a row's `config.yaml` differs from the baseline row's (a switch a "
+                      "config predates counts at the value runs without it had; other keys only one of them has, "
+                      "added to the code later, aside)"),
     "seeds": Column("Seeds", "r", lambda ctx, row: str(len(row.runs))),
     "success": Column("Test success", "r", _key_cell("success_rate"),
                       "the 1000 test tasks (`eval.test_seed`), read once at the end"),
