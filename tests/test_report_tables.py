@@ -82,6 +82,22 @@ def test_a_new_study_is_a_block_spec_and_its_table_is_the_summary_files(tmp_path
     assert f"Runs: `{tmp_path}/<method>/seed<k>/`" in text and "--block a_study" in text
 
 
+def test_a_switch_the_baseline_s_config_predates_counts_as_a_change(tmp_path):
+    """A baseline saved before a switch existed ran at the switch's absent value (paper.yaml's settings.absent)."""
+    old = _paper_sac()
+    old["replay_buffer"] = {k: v for k, v in old["replay_buffer"].items() if k != "collision_terminal"}
+    _run(tmp_path, "sac", 0, {"success_rate": 0.05, "validation_success_rate": 0.05}, old)
+    _run(tmp_path, "sac_terminal", 0, {"success_rate": 0.1, "validation_success_rate": 0.1},
+         _paper_sac(replay_buffer__collision_terminal=True))
+    _run(tmp_path, "sac_same", 0, {"success_rate": 0.05, "validation_success_rate": 0.05},
+         _paper_sac(replay_buffer__collision_terminal=False))
+    spec = {"kind": "runs", "title": "t", "results": str(tmp_path), "name": "SAC", "baseline": "sac",
+            "columns": ["method", "changed", "seeds"]}
+    rows = _rows(pages.render_block("t", spec, tmp_path / "p.md"))
+    assert rows["sac_terminal"][1] == "`replay_buffer.collision_terminal=true`"
+    assert rows["sac_same"][1] == "none (the baseline)"
+
+
 def test_rows_not_run_fewer_seeds_and_orderings_that_cannot_be_read(tmp_path):
     _run(tmp_path, "sac", 0, {"success_rate": 0.5})
     _run(tmp_path, "sac", 1, {"success_rate": 0.7})
