@@ -105,6 +105,15 @@ class StopRequest:
             raise KeyboardInterrupt(message)
         raise SystemExit(128 + self.signum)
 
+    def exit_run(self, counters: dict, ckpt_dir: Path, resume_command: str | None = None) -> None:
+        """:meth:`exit` a training loop the signal stopped, saying where its checkpoint is and how to
+        continue (``resume_command``, or the generic ``resume=true``)."""
+        if not counters["frames"]:  # before the first batch: nothing to save or resume
+            self.exit("stopped before the first collector batch: nothing was collected or trained")
+        how = resume_command or "resume=true and the same config"
+        self.exit(f"stopped at {counters['frames']:,} frames and {counters['updates']:,} updates with a checkpoint "
+                  f"in {ckpt_dir}; continue with: {how}")
+
 
 def training_state(loss, optimizers, averaged, counters, history, assembler, logger, env, norm=None) -> dict:
     """What a checkpoint holds besides the buffers (``norm``: the run's

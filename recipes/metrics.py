@@ -16,6 +16,8 @@ from pathlib import Path
 
 import torch
 import tqdm
+from omegaconf import OmegaConf
+from torchrl.record.loggers import get_logger
 
 from torchrl_silp.eval import evaluate
 from torchrl_silp.recipes.builders import make_observation_transform
@@ -110,6 +112,31 @@ def evaluate_run(cfg, model, policies, device, counters: dict, history: list[dic
         counters["time_to_095_s"] = counters["train_wall_s"]
     plot_learning_curve(history, run_dir / "learning_curve.png", label=cfg.logger.exp_name)
     return (metrics, rollout) if return_rollout else metrics
+
+
+def final_evaluation(cfg, counters: dict, history: list[dict], evaluate_now):
+    """The run's closing figures: ``(test, validation, rollout)``. The test tasks (``cfg.eval.test_seed``) are
+    read once, here; the validation figure is the last point of ``history`` when the last batch just made it,
+    else evaluated now. With one set of tasks for both (``test_seed == seed``) it is evaluated once.
+    ``evaluate_now(seed=None, return_rollout=False)``: the run's :func:`evaluate_run`."""
+    if cfg.eval.test_seed == cfg.eval.seed:
+        final, rollout = evaluate_now(return_rollout=True)
+        return final, final, rollout
+    validation = history[-1] if history and history[-1]["frames"] == counters["frames"] else evaluate_now()
+    final, rollout = evaluate_now(cfg.eval.test_seed, return_rollout=True)
+    return final, validation, rollout
+
+
+def make_run_logger(cfg, run_dir: Path, state_dict: dict | None, log_hparams: bool):
+    """The run's TorchRL logger (``cfg.logger.backend``; None without one), writing under ``run_dir / "logs"``
+    and continuing from a checkpoint's ``state_dict``; ``log_hparams``: record the config (a fresh run)."""
+    if not cfg.logger.backend:
+        return None
+    logger = get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"),
+                        experiment_name=cfg.logger.exp_name, state_dict=state_dict)
+    if log_hparams:
+        logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
+    return logger
 
 
 def log_metrics(logger, metrics: dict, step: int) -> None:

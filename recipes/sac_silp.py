@@ -26,9 +26,8 @@ import functools
 import time
 import warnings
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torchrl._utils import timeit
-from torchrl.record.loggers import get_logger
 
 from torchrl_silp.data import EpisodeAssembler
 from torchrl_silp.modules import make_averaged_actor
@@ -39,8 +38,8 @@ from torchrl_silp.recipes.builders import (
 )
 from torchrl_silp.recipes.checkpointing import StopRequest, checkpoint_run, restore
 from torchrl_silp.recipes.metrics import (
-    Progress, add_bc_filter_share, batch_metrics, count_batch, evaluate_run, log_metrics, new_counters,
-    plot_learning_curve, summarize, truncate_logs, write_results,
+    Progress, add_bc_filter_share, batch_metrics, count_batch, evaluate_run, final_evaluation, log_metrics,
+    make_run_logger, new_counters, plot_learning_curve, summarize, truncate_logs, write_results,
 )
 from torchrl_silp.recipes.preflight import checkpoint_exists
 from torchrl_silp.recipes.start import start_run, write_run_config
@@ -96,12 +95,7 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
     dropped = truncate_logs(run_dir / "logs", counters["frames"])
     if dropped:
         print(f"dropped {dropped} log rows after frame {counters['frames']}: the run redoes those steps")
-    logger = None
-    if cfg.logger.backend:
-        logger = get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"),
-                            experiment_name=cfg.logger.exp_name, state_dict=logger_state)
-        if not resumed:
-            logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
+    logger = make_run_logger(cfg, run_dir, logger_state, log_hparams=not resumed)
     save = functools.partial(checkpoint_run, ckpt_dir, loss, optimizers, averaged, counters, history, assembler,
                              logger, env, buffers, norm)
     evaluate_now = functools.partial(evaluate_run, cfg, model, policies, device, counters, history, run_dir)
@@ -179,19 +173,10 @@ def train(cfg: DictConfig, resume_command: str | None = None) -> dict:
     collector.shutdown()
     progress.bar.close()
     if stop.requested:
-        if not counters["frames"]:  # before the first batch: nothing to save or resume
-            stop.exit("stopped before the first collector batch: nothing was collected or trained")
-        how = resume_command or "resume=true and the same config"
-        stop.exit(f"stopped at {counters['frames']:,} frames and {counters['updates']:,} updates with a checkpoint "
-                  f"in {ckpt_dir}; continue with: {how}")
+        stop.exit_run(counters, ckpt_dir, resume_command)
 
     # ---- the final figures: the last validation point, then the test tasks, read once
-    if cfg.eval.test_seed == cfg.eval.seed:  # one set of tasks for the curve and the figure: evaluated once
-        final, rollout = evaluate_now(return_rollout=True)
-        validation = final
-    else:  # the last validation point (evaluated now unless the last batch just did), then the test tasks
-        validation = history[-1] if history and history[-1]["frames"] == counters["frames"] else evaluate_now()
-        final, rollout = evaluate_now(cfg.eval.test_seed, return_rollout=True)
+    final, validation, rollout = final_evaluation(cfg, counters, history, evaluate_now)
     save()
     summary = summarize(cfg, counters, final, len(buffers.demo_buffer), validation)
     if summary["warning"]:

@@ -15,7 +15,6 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from torchrl_silp.recipes import preflight
 from torchrl_silp.recipes.preflight import check_run_folder
 from torchrl_silp.recipes.schema import ConfigError, check_config
 from torchrl_silp.recipes.schema import load_config
