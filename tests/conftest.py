@@ -3,16 +3,36 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
 import pytest
 import torch
+from hypothesis import settings
 
 from torchrl_silp.models import UR5eReach
 from torchrl_silp.recipes.schema import load_config
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+# Property tests check values, not speed: no per-example deadline, which a loaded machine (the suite runs
+# on every core, see pytest_configure) would turn into spurious failures.
+settings.register_profile("project", deadline=None)
+settings.load_profile("project")
+
+
+def pytest_configure(config):
+    """Under pytest-xdist (``-n``, on by default in pyproject's ``addopts``) each worker gets its share of the
+    cores, as torch threads and as ``OMP_NUM_THREADS`` for the recipe processes the tests start: torch's
+    default of one thread per core in every worker makes them spin against each other, several times slower
+    than the cores' share."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        threads = max(1, cores // workers)
+        torch.set_num_threads(threads)
+        os.environ["OMP_NUM_THREADS"] = str(threads)
 
 # a recipe run of seconds: 4 envs, 100 transitions per collector batch, 8 evaluation tasks, an eager
 # update, no progress bar, no logger

@@ -333,7 +333,7 @@ def test_the_main_job_trains_on_a_urdf_given_on_the_command_line(tmp_path):
                f"env.robot.joints=[{','.join(UR_ARM)}]", "env.robot.ee_link=tool0", "env.robot.self_collision_samples=2000",
                "env.num_envs=8", "collector.frames_per_batch=200", "collector.total_frames=400",
                "collector.init_random_frames=200", "eval.n_tasks=8", "eval.every_frames=200", "progress=false",
-               "compile.compile=false", f"run_dir={run}"]
+               "compile.compile=false", "threads=1", f"run_dir={run}"]
     before = subprocess.run(["git", "status", "--porcelain"], cwd=REPO, capture_output=True, text=True).stdout
     done = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
