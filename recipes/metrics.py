@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 import tqdm
 from omegaconf import OmegaConf
+from torchrl.envs.utils import ExplorationType
 from torchrl.record.loggers import get_logger
 
 from torchrl_silp.eval import evaluate
@@ -78,11 +79,12 @@ class Progress:
 
 
 def evaluate_run(cfg, model, policies, device, counters: dict, history: list[dict], run_dir: Path,
-                 seed: int | None = None, return_rollout: bool = False):
+                 seed: int | None = None, return_rollout: bool = False, sampling: bool = False):
     """Evaluate the run's policy on ``cfg.eval.n_tasks`` tasks (``seed``: the validation tasks by default).
 
     ``policies`` is ``(evaluated, actor, averaged)``: the evaluated policy, and with an averaged actor
-    the online one too (``online_success_rate``). On the validation tasks the result is a point of
+    the online one too (``online_success_rate``). ``sampling``: a SAC policy is also evaluated as it acts in
+    training, its actions sampled (``sampling_success_rate``). On the validation tasks the result is a point of
     ``history`` (with the BC filter's kept share since the last point) and of the learning curve, and
     sets ``time_to_095_s`` the first time it reaches 0.95. Returns the metrics (and the rollout).
 
@@ -99,6 +101,9 @@ def evaluate_run(cfg, model, policies, device, counters: dict, history: list[dic
     metrics, rollout = evaluate(evaluated, return_rollout=True, **kwargs)
     if averaged is not None:
         metrics["online_success_rate"] = evaluate(actor, **kwargs)["success_rate"]
+    if sampling and cfg.algorithm == "sac":
+        metrics["sampling_success_rate"] = evaluate(evaluated, exploration_type=ExplorationType.RANDOM,
+                                                    **kwargs)["success_rate"]
     if seed != cfg.eval.seed:  # the test tasks' figure: not a point of the validation curve
         return (metrics, rollout) if return_rollout else metrics
     point = {"frames": counters["frames"], "episodes": counters["episodes"],
@@ -116,14 +121,14 @@ def evaluate_run(cfg, model, policies, device, counters: dict, history: list[dic
 
 def final_evaluation(cfg, counters: dict, history: list[dict], evaluate_now):
     """The run's closing figures: ``(test, validation, rollout)``. The test tasks (``cfg.eval.test_seed``) are
-    read once, here; the validation figure is the last point of ``history`` when the last batch just made it,
-    else evaluated now. With one set of tasks for both (``test_seed == seed``) it is evaluated once.
-    ``evaluate_now(seed=None, return_rollout=False)``: the run's :func:`evaluate_run`."""
+    read once, here (a SAC policy also with sampled actions); the validation figure is the last point of
+    ``history`` when the last batch just made it, else evaluated now. With one set of tasks for both
+    (``test_seed == seed``) it is evaluated once. ``evaluate_now``: the run's :func:`evaluate_run`."""
     if cfg.eval.test_seed == cfg.eval.seed:
-        final, rollout = evaluate_now(return_rollout=True)
+        final, rollout = evaluate_now(return_rollout=True, sampling=True)
         return final, final, rollout
     validation = history[-1] if history and history[-1]["frames"] == counters["frames"] else evaluate_now()
-    final, rollout = evaluate_now(cfg.eval.test_seed, return_rollout=True)
+    final, rollout = evaluate_now(cfg.eval.test_seed, return_rollout=True, sampling=True)
     return final, validation, rollout
 
 
@@ -201,7 +206,12 @@ def summarize(cfg, counters: dict, final: dict, demos_stored: int, validation: d
         "online_success_rate": final.get("online_success_rate", final["success_rate"]),
         "evaluated_actor": "online" if cfg.eval.actor_average_decay is None
         else f"average (decay {cfg.eval.actor_average_decay})",
-        "test_collision_rate": final["collision_rate"], "collisions_during_training": counters["collisions"],
+        "test_collision_rate": final["collision_rate"],
+        # the test tasks split by whether the straight joint path to the goal solves them (evaluate's split)
+        "test_free_task_share": final.get("free_task_share"), "test_free_success_rate": final.get("free_success_rate"),
+        "test_blocked_success_rate": final.get("blocked_success_rate"),
+        "sampling_success_rate": final.get("sampling_success_rate"),  # SAC: the test tasks with sampled actions
+        "collisions_during_training": counters["collisions"],
         # collisions of a motion whose reached state is free: what a check of the reached state alone let pass
         "swept_collisions_during_training": counters.get("swept_collisions", 0),
         "episodes": counters["episodes"], "frames": counters["frames"], "updates": counters["updates"],

@@ -79,6 +79,14 @@ def test_recipe_smoke(tmp_path, script, overrides, bc, demos):
     # 3 batches of 100 at 0.25 updates per frame
     assert out["updates"] == 3 * 25
     assert out["success_rate"] * 8 == round(out["success_rate"] * 8)  # a share of the 8 test tasks
+    # the test tasks split by the straight path (tests/test_eval.py): the two kinds' successes make up the whole
+    free, parts = out["test_free_task_share"], (out["test_free_success_rate"], out["test_blocked_success_rate"])
+    assert free * 8 == round(free * 8)
+    solved = sum(share * rate for share, rate in zip((free, 1 - free), parts) if rate is not None)
+    assert solved == pytest.approx(out["success_rate"])
+    # SAC's policy on the test tasks with sampled actions too; DDPG's is deterministic
+    sampling = out["sampling_success_rate"]
+    assert (sampling is None) is script.startswith("ddpg") and (sampling is None or sampling * 8 == round(sampling * 8))
     assert (out["demos_stored"] > 0) is demos
     assert out["rollout_time_per_episode_s"] > 0
     for name in ("learning_curve.png", "test_rollouts.png", "history.json"):

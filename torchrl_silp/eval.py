@@ -69,14 +69,16 @@ def evaluate(
     collision_type: int = 0,
     device: torch.device | str | None = None,
     return_rollout: bool = False,
+    exploration_type: ExplorationType = ExplorationType.DETERMINISTIC,
 ) -> dict | tuple[dict, TensorDictBase]:
     """Roll a policy out deterministically on ``n_tasks`` fixed test tasks of a task model.
 
     The tasks are those of ``ReachEnv(model, num_envs=n_tasks, seed=seed)`` after
     its first reset, so every method sees the same ones for the same model and
-    seed. All tasks run as one batch under ``ExplorationType.DETERMINISTIC``.
-    With ``collision_type=0`` (default) a collision ends the episode as a failure,
-    as it would on a real arm.
+    seed. All tasks run as one batch under ``exploration_type``: ``DETERMINISTIC``
+    (default), a stochastic policy's mode, as the paper tests; ``RANDOM``, its samples,
+    as it acts in training. With ``collision_type=0`` (default) a collision ends the
+    episode as a failure, as it would on a real arm.
 
     Args:
         policy: a TensorDict module (or any callable ``td -> td`` writing ``"action"``).
@@ -92,12 +94,17 @@ def evaluate(
         collision_type: collision handling during the test (0, 1 or 2).
         device: device of the test env; defaults to the policy's parameters' device.
         return_rollout: also return the rollout TensorDict ``[n_tasks, T]``.
+        exploration_type: how the policy acts (TorchRL's ``set_exploration_type``).
 
     Returns:
         ``success_rate``, ``collision_rate`` (episodes with a collision),
         ``mean_steps`` (steps of the successful episodes), ``mean_return``,
         ``time_per_rollout_s`` (wall time of the batched rollout divided by the
-        number of tasks), ``rollout_wall_s`` and ``n_tasks``.
+        number of tasks), ``rollout_wall_s`` and ``n_tasks``; and the success split by
+        :func:`straight_path_free`: ``free_task_share`` (the tasks whose straight joint
+        path solves them), ``free_success_rate`` and ``blocked_success_rate`` (the
+        success rate on those and on the others; NaN where there are none), when the
+        task model is known (``model``, or ``env.model``).
 
     Examples:
         >>> import torch
@@ -125,7 +132,7 @@ def evaluate(
             Compose(CollisionHandling(collision_type), observation_transform),
         )
     n = env.batch_size.numel()
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
+    with set_exploration_type(exploration_type):
         start = time.perf_counter()
         rollout = env.rollout(env.max_steps, policy, break_when_all_done=True, break_when_any_done=False)
         wall = time.perf_counter() - start
@@ -141,4 +148,14 @@ def evaluate(
         "rollout_wall_s": wall,
         "n_tasks": n,
     }
+    task_model = model if model is not None else getattr(env, "model", None)
+    if task_model is not None:  # the tasks as drawn: the first step's named state, flat
+        free = straight_path_free(task_model, rollout[..., 0].reshape(-1), env.max_steps).reshape(success.shape)
+        metrics.update(free_task_share=free.float().mean().item(), free_success_rate=_share(success, free),
+                       blocked_success_rate=_share(success, ~free))
     return (metrics, rollout) if return_rollout else metrics
+
+
+def _share(hit: torch.Tensor, among: torch.Tensor) -> float:
+    """The share of ``among`` that ``hit`` marks (NaN where ``among`` marks nothing)."""
+    return hit[among].float().mean().item() if among.any() else float("nan")
