@@ -429,3 +429,19 @@ def test_a_value_after_n_episodes_is_the_first_evaluation_past_them(tmp_path):
     assert run.value("success_rate@episodes=1000") == 0.4 and run.value("success_rate@episodes=1500") == 0.7
     assert run.value("success_rate@episodes=1501") is None and run.value("success_rate") == 0.9
 
+
+
+def test_the_split_and_sampled_action_columns_average_each_kind_over_the_runs(tmp_path):
+    splits = [(0.6, 1.0, 0.25, 0.5), (0.7, 0.9, 0.35, 0.7)]  # free share, free success, blocked success, sampled
+    for seed, (share, free, blocked, sampled) in enumerate(splits):
+        _run(tmp_path, "sac", seed, {"success_rate": share * free + (1 - share) * blocked, "test_free_task_share": share,
+                                     "test_free_success_rate": free, "test_blocked_success_rate": blocked,
+                                     "sampling_success_rate": sampled})
+    _run(tmp_path, "sac_old", 0, {"success_rate": 0.5})  # a run from before the split: no figure, no guess
+    spec = {"kind": "runs", "title": "a split", "results": str(tmp_path), "name": "SAC",
+            "columns": ["method", "sampling", "free_blocked"]}
+    rows = _rows(pages.render_block("a_split", spec, tmp_path / "page.md"))
+    mean = np.mean(splits, axis=0)
+    assert rows["sac"][1] == f"{mean[3]:.3f} ({np.std([s[3] for s in splits]):.3f})"
+    assert rows["sac"][2] == f"{mean[1]:.3f} / {mean[2]:.3f} ({mean[0]:.3f} free)"
+    assert rows["sac_old"][1:] == ["—", "—"]

@@ -259,6 +259,15 @@ def _key_cell(key: str, fmt=rate) -> Callable[[Context, Row], str]:
     return cell
 
 
+def _free_blocked(ctx: Context, row: Row) -> str:
+    """``free / blocked (share free)``: the means of the split's success rates over the row's runs."""
+    share = row.mean("test_free_task_share")
+    if share is None:
+        return "—"
+    free, blocked = (row.mean(f"test_{kind}_success_rate") for kind in ("free", "blocked"))
+    return " / ".join("—" if v is None else rate(v) for v in (free, blocked)) + f" ({rate(share)} free)"
+
+
 def _changed(ctx: Context, row: Row) -> str:
     """``key=value`` for each setting in which the row's config differs from the baseline row's."""
     if ctx.baseline is None or not ctx.baseline.runs or not row.runs:
@@ -389,6 +398,12 @@ COLUMNS = {
     "test_collision": Column("Test collision rate", "r", _key_cell("test_collision_rate"),
                              "the share of the test tasks that end in a collision (the other failures run out of "
                              "steps)"),
+    "sampling": Column("Test success, sampled actions", "r", _key_cell("sampling_success_rate"),
+                       "SAC's policy on the test tasks acting as it does in training, its actions sampled (the "
+                       "other success columns take its mean action, as the paper tests)"),
+    "free_blocked": Column("Test success: straight path free / blocked", "r", _free_blocked,
+                           "the test tasks split by whether the straight joint path to the goal solves them "
+                           "(`torchrl_silp.eval.straight_path_free`), and the share of the free ones"),
     "train_time": Column("Training time", "r", _train_time,
                          "`train_wall_s`, wall time without the evaluations (*: a planner, nothing to train)"),
     "time_to_095": Column("Time to 0.95", "r", _time_to_095,
