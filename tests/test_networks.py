@@ -270,7 +270,9 @@ def test_next_clearance_is_negative_exactly_where_the_next_configuration_collide
 @pytest.mark.parametrize(("num_boxes", "compiled"), [(1, False), (3, False), (3, True)])
 def test_next_clearance_gradient_reaches_the_actor_through_sac(num_boxes, compiled):
     """Inside SACLoss's vmap, eager and compiled: the one-box model's own clearance and the several-box one
-    (ArmReach's), whose clearance must make no host-synced check nor change shape with the values."""
+    (ArmReach's), whose clearance must make no host-synced check nor change shape with the values. Compiled is
+    traced whole (``fullgraph``) with its backward (``aot_eager``): what such a check or shape would break;
+    inductor's code generation adds nothing to that, and its numerics are tests/test_recipe_builders.py's."""
     torch.manual_seed(0)
     env, actor = _env_and_actor("sac", UR5eReach(num_boxes=num_boxes))
     model = env.base_env.model
@@ -280,7 +282,7 @@ def test_next_clearance_gradient_reaches_the_actor_through_sac(num_boxes, compil
         data = env.rollout(6, actor).reshape(-1)
     critic(data.clone())  # the lazy MLP takes its input width
     loss = _loss("sac", actor, critic, env)
-    forward = torch.compile(loss, fullgraph=True) if compiled else loss
+    forward = torch.compile(loss, fullgraph=True, backend="aot_eager") if compiled else loss
     out = forward(data)
     out["loss_actor"].backward()
     grads = [p.grad for p in loss.actor_network_params.values(True, True) if p.requires_grad]
