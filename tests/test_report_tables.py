@@ -438,6 +438,9 @@ def test_the_split_and_sampled_action_columns_average_each_kind_over_the_runs(tm
                                      "test_free_success_rate": free, "test_blocked_success_rate": blocked,
                                      "sampling_success_rate": sampled})
     _run(tmp_path, "sac_old", 0, {"success_rate": 0.5})  # a run from before the split: no figure, no guess
+    _run(tmp_path, "sac_mixed", 0, {"success_rate": 0.5})  # a row with one run from before the split, one after
+    _run(tmp_path, "sac_mixed", 1, {"success_rate": 0.5, "test_free_task_share": 0.5, "test_free_success_rate": 0.75,
+                                    "test_blocked_success_rate": 0.25, "sampling_success_rate": 0.4})
     spec = {"kind": "runs", "title": "a split", "results": str(tmp_path), "name": "SAC",
             "columns": ["method", "sampling", "free_blocked"]}
     rows = _rows(pages.render_block("a_split", spec, tmp_path / "page.md"))
@@ -445,3 +448,4 @@ def test_the_split_and_sampled_action_columns_average_each_kind_over_the_runs(tm
     assert rows["sac"][1] == f"{mean[3]:.3f} ({np.std([s[3] for s in splits]):.3f})"
     assert rows["sac"][2] == f"{mean[1]:.3f} / {mean[2]:.3f} ({mean[0]:.3f} free)"
     assert rows["sac_old"][1:] == ["—", "—"]
+    assert rows["sac_mixed"][1:] == ["0.400 (1 of 2 runs)", "0.750 / 0.250 (0.500 free) (1 of 2 runs)"]

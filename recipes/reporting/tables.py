@@ -251,12 +251,19 @@ class Context:
 
 
 def _key_cell(key: str, fmt=rate) -> Callable[[Context, Row], str]:
-    """The mean (std) of a summary key over the row's runs; a row with no run: ``not run`` in its success column."""
+    """The mean (std) of a summary key over the row's runs, with how many of them give it where some do not (runs
+    from before the key); a row with no run: ``not run`` in its success column."""
     def cell(ctx: Context, row: Row) -> str:
         if not row.runs:
             return "not run" if key == "success_rate" else "—"
-        return mean_std(row.values(key), fmt)
+        return mean_std(row.values(key), fmt) + _of_runs(row, key)
     return cell
+
+
+def _of_runs(row: Row, key: str) -> str:
+    """`` (k of n runs)`` when only some of the row's ``n`` runs give ``key``, else nothing."""
+    k = len(row.values(key))
+    return f" ({k} of {len(row.runs)} runs)" if 0 < k < len(row.runs) else ""
 
 
 def _free_blocked(ctx: Context, row: Row) -> str:
@@ -265,7 +272,8 @@ def _free_blocked(ctx: Context, row: Row) -> str:
     if share is None:
         return "—"
     free, blocked = (row.mean(f"test_{kind}_success_rate") for kind in ("free", "blocked"))
-    return " / ".join("—" if v is None else rate(v) for v in (free, blocked)) + f" ({rate(share)} free)"
+    cells = " / ".join("—" if v is None else rate(v) for v in (free, blocked))
+    return f"{cells} ({rate(share)} free){_of_runs(row, 'test_free_task_share')}"
 
 
 def _changed(ctx: Context, row: Row) -> str:
