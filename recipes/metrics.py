@@ -79,12 +79,13 @@ class Progress:
 
 
 def evaluate_run(cfg, model, policies, device, counters: dict, history: list[dict], run_dir: Path,
-                 seed: int | None = None, return_rollout: bool = False, sampling: bool = False):
+                 seed: int | None = None, return_rollout: bool = False, closing: bool = False):
     """Evaluate the run's policy on ``cfg.eval.n_tasks`` tasks (``seed``: the validation tasks by default).
 
     ``policies`` is ``(evaluated, actor, averaged)``: the evaluated policy, and with an averaged actor
-    the online one too (``online_success_rate``). ``sampling``: a SAC policy is also evaluated as it acts in
-    training, its actions sampled (``sampling_success_rate``). On the validation tasks the result is a point of
+    the online one too (``online_success_rate``). ``closing``: the run's closing test figures also split the
+    success by the straight path (``evaluate``'s ``split_by_straight_path``) and evaluate a SAC policy as it
+    acts in training, its actions sampled (``sampling_success_rate``). On the validation tasks the result is a point of
     ``history`` (with the BC filter's kept share since the last point) and of the learning curve, and
     sets ``time_to_095_s`` the first time it reaches 0.95. Returns the metrics (and the rollout).
 
@@ -98,10 +99,10 @@ def evaluate_run(cfg, model, policies, device, counters: dict, history: list[dic
     seed = cfg.eval.seed if seed is None else seed
     kwargs = dict(n_tasks=cfg.eval.n_tasks, seed=seed, model=model, max_steps=cfg.env.max_steps,
                   observation_transform=make_observation_transform(cfg, model), device=device)
-    metrics, rollout = evaluate(evaluated, return_rollout=True, **kwargs)
+    metrics, rollout = evaluate(evaluated, return_rollout=True, split_by_straight_path=closing, **kwargs)
     if averaged is not None:
         metrics["online_success_rate"] = evaluate(actor, **kwargs)["success_rate"]
-    if sampling and cfg.algorithm == "sac":
+    if closing and cfg.algorithm == "sac":
         metrics["sampling_success_rate"] = evaluate(evaluated, exploration_type=ExplorationType.RANDOM,
                                                     **kwargs)["success_rate"]
     if seed != cfg.eval.seed:  # the test tasks' figure: not a point of the validation curve
@@ -125,10 +126,10 @@ def final_evaluation(cfg, counters: dict, history: list[dict], evaluate_now):
     ``history`` when the last batch just made it, else evaluated now. With one set of tasks for both
     (``test_seed == seed``) it is evaluated once. ``evaluate_now``: the run's :func:`evaluate_run`."""
     if cfg.eval.test_seed == cfg.eval.seed:
-        final, rollout = evaluate_now(return_rollout=True, sampling=True)
+        final, rollout = evaluate_now(return_rollout=True, closing=True)
         return final, final, rollout
     validation = history[-1] if history and history[-1]["frames"] == counters["frames"] else evaluate_now()
-    final, rollout = evaluate_now(cfg.eval.test_seed, return_rollout=True, sampling=True)
+    final, rollout = evaluate_now(cfg.eval.test_seed, return_rollout=True, closing=True)
     return final, validation, rollout
 
 

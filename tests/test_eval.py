@@ -28,7 +28,7 @@ def straight_to_the_goal(model):
 
 def test_the_success_split_follows_the_tasks_the_straight_path_solves(model):
     metrics, rollout = evaluate(straight_to_the_goal(model), n_tasks=N_TASKS, seed=SEED, model=model,
-                                return_rollout=True)
+                                return_rollout=True, split_by_straight_path=True)
     # the same tasks, drawn independently of evaluate
     tasks = ReachEnv(model, num_envs=N_TASKS, seed=SEED).reset()
     free = straight_path_free(model, tasks)
@@ -44,9 +44,15 @@ def test_the_success_split_follows_the_tasks_the_straight_path_solves(model):
 
 def test_a_split_with_no_task_of_a_kind_is_nan(model):
     still = lambda td: td.set("action", torch.zeros(*td.batch_size, model.action_dim))  # noqa: E731
-    metrics = evaluate(still, n_tasks=1, seed=SEED, model=model)
+    metrics = evaluate(still, n_tasks=1, seed=SEED, model=model, split_by_straight_path=True)
     kinds = [metrics["free_success_rate"], metrics["blocked_success_rate"]]
     assert sum(math.isnan(k) for k in kinds) == 1
+
+
+def test_without_the_split_no_split_figure_is_given(model):
+    still = lambda td: td.set("action", torch.zeros(*td.batch_size, model.action_dim))  # noqa: E731
+    metrics = evaluate(still, n_tasks=4, seed=SEED, model=model, max_steps=3)
+    assert not {"free_task_share", "free_success_rate", "blocked_success_rate"} & set(metrics)
 
 
 def test_the_policy_acts_under_the_exploration_type_asked_for(model):

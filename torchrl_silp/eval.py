@@ -70,6 +70,7 @@ def evaluate(
     device: torch.device | str | None = None,
     return_rollout: bool = False,
     exploration_type: ExplorationType = ExplorationType.DETERMINISTIC,
+    split_by_straight_path: bool = False,
 ) -> dict | tuple[dict, TensorDictBase]:
     """Roll a policy out deterministically on ``n_tasks`` fixed test tasks of a task model.
 
@@ -95,16 +96,17 @@ def evaluate(
         device: device of the test env; defaults to the policy's parameters' device.
         return_rollout: also return the rollout TensorDict ``[n_tasks, T]``.
         exploration_type: how the policy acts (TorchRL's ``set_exploration_type``).
+        split_by_straight_path: also split the success by :func:`straight_path_free`
+            (a motion check of every task's straight path: about as long as the rollout).
 
     Returns:
         ``success_rate``, ``collision_rate`` (episodes with a collision),
         ``mean_steps`` (steps of the successful episodes), ``mean_return``,
         ``time_per_rollout_s`` (wall time of the batched rollout divided by the
-        number of tasks), ``rollout_wall_s`` and ``n_tasks``; and the success split by
-        :func:`straight_path_free`: ``free_task_share`` (the tasks whose straight joint
-        path solves them), ``free_success_rate`` and ``blocked_success_rate`` (the
-        success rate on those and on the others; NaN where there are none), when the
-        task model is known (``model``, or ``env.model``).
+        number of tasks), ``rollout_wall_s`` and ``n_tasks``; with ``split_by_straight_path``,
+        ``free_task_share`` (the tasks whose straight joint path solves them),
+        ``free_success_rate`` and ``blocked_success_rate`` (the success rate on those and
+        on the others; NaN where there are none).
 
     Examples:
         >>> import torch
@@ -148,8 +150,8 @@ def evaluate(
         "rollout_wall_s": wall,
         "n_tasks": n,
     }
-    task_model = model if model is not None else getattr(env, "model", None)
-    if task_model is not None:  # the tasks as drawn: the first step's named state, flat
+    if split_by_straight_path:  # the tasks as drawn: the first step's named state, flat
+        task_model = as_model(model if model is not None else env)
         free = straight_path_free(task_model, rollout[..., 0].reshape(-1), env.max_steps).reshape(success.shape)
         metrics.update(free_task_share=free.float().mean().item(), free_success_rate=_share(success, free),
                        blocked_success_rate=_share(success, ~free))
